@@ -3,9 +3,13 @@
 
 pub mod builtin;
 pub mod canvas;
+pub mod defect;
+pub mod grasp;
+pub mod gripper;
 pub mod loaders;
 pub mod mesh;
 pub mod raster;
+pub mod scene;
 
 use std::path::{Path, PathBuf};
 

@@ -51,14 +51,16 @@ pub struct Decal {
 }
 
 impl Decal {
+    /// Whether the surface point `p` with (unnormalised) normal `n`, both in
+    /// the mesh frame, carries the mark.
     #[inline]
-    fn covers(&self, p: &Point3<f32>) -> bool {
+    pub fn covers(&self, p: &Point3<f32>, n: &Vector3<f32>) -> bool {
         let d = p - self.center;
         let bound = self.half_length + self.half_width + self.wiggle;
         if d.norm_squared() > bound * bound {
             return false;
         }
-        if d.dot(&self.normal).abs() > self.depth_tolerance {
+        if d.dot(&self.normal).abs() > self.depth_tolerance || n.dot(&self.normal) <= 0.2 * n.norm() {
             return false;
         }
         let u = d.dot(&self.tangent);
@@ -491,18 +493,18 @@ impl Shader<'_> {
             albedo = [albedo[0] * tex[0], albedo[1] * tex[1], albedo[2] * tex[2]];
         }
         let mut specular = material.specular;
+        let n_mesh = mesh.normals[ia] * b[0] + mesh.normals[ib] * b[1] + mesh.normals[ic] * b[2];
         if !inst.decals.is_empty() {
             let p = Point3::from(
                 mesh.positions[ia].coords * b[0] + mesh.positions[ib].coords * b[1] + mesh.positions[ic].coords * b[2],
             );
             for d in inst.decals {
-                if d.covers(&p) {
+                if d.covers(&p, &n_mesh) {
                     albedo = d.color;
                     specular = d.specular;
                 }
             }
         }
-        let n_mesh = mesh.normals[ia] * b[0] + mesh.normals[ib] * b[1] + mesh.normals[ic] * b[2];
         let mut n = inst.rotation * n_mesh;
         let len = n.norm();
         n = if len > 0.0 { n / len } else { Vector3::z() };

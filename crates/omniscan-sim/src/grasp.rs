@@ -1,0 +1,331 @@
+//! Antipodal grasps for the simulated robot (paper, "Tabletop Grasping" and
+//! "Bi-Manual Handover"; the real system uses Contact-GraspNet).
+//!
+//! Candidates come from surface points sampled by area: the closing axis is
+//! the inward normal, the two contacts are where that line enters and leaves
+//! the object, and both contact normals must lie in a friction cone about the
+//! axis. Each candidate gets the approach direction about its axis that keeps
+//! the object clear of the palm and the fingers. The left arm takes the most
+//! stable grasp (axis through the centroid, good antipodality); the right arm
+//! then takes the best grasp whose pads are away from the left pads and whose
+//! gripper does not collide with the left one, so the handover exposes what
+//! the left fingers covered.
+
+use nalgebra::{Matrix3, Point3, Rotation3, UnitQuaternion, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::SimError;
+use crate::gripper::{FINGER_LENGTH_M, FINGER_MOUNT_M, FINGER_WIDTH_M, TCP_FROM_BASE_M, gripper_boxes};
+use crate::mesh::Mesh;
+use omniscan_core::Pose;
+
+/// A two-finger grasp in the object's frame.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Grasp {
+    /// Midpoint of the two contacts (the TCP), object frame, metres.
+    pub center: [f64; 3],
+    /// Closing direction of the fingers (gripper x), object frame.
+    pub axis: [f64; 3],
+    /// Approach direction (gripper z, wrist to fingertips), object frame.
+    pub approach: [f64; 3],
+    /// Distance between the contacts = the finger opening, metres.
+    pub width_m: f64,
+    pub contacts: [[f64; 3]; 2],
+    /// Higher is better: antipodality minus a torque penalty.
+    pub quality: f64,
+}
+
+impl Grasp {
+    /// Pose of the object in the gripper: object frame to TCP frame.
+    pub fn object_to_gripper(&self) -> Pose {
+        let x = Vector3::from(self.axis);
+        let z = Vector3::from(self.approach);
+        let y = z.cross(&x);
+        let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z])));
+        let gripper_to_object = Pose::from_parts(nalgebra::Translation3::from(Vector3::from(self.center)), rotation);
+        gripper_to_object.inverse()
+    }
+}
+
+/// Settings of the grasp search.
+#[derive(Debug, Clone, Copy)]
+pub struct GraspSettings {
+    pub candidates: usize,
+    /// Half-angle of the friction cone, radians.
+    pub friction_cone_rad: f64,
+    pub min_width_m: f64,
+    pub max_width_m: f64,
+    pub seed: u64,
+}
+
+struct Candidate {
+    center: Point3<f64>,
+    axis: Vector3<f64>,
+    width: f64,
+    contacts: [Point3<f64>; 2],
+    quality: f64,
+}
+
+/// Vertices of `mesh` (subsampled), in the object frame.
+fn sample_vertices(mesh: &Mesh, max: usize) -> Vec<Point3<f64>> {
+    let step = (mesh.positions.len() / max).max(1);
+    mesh.positions.iter().step_by(step).map(|p| p.cast::<f64>()).collect()
+}
+
+fn inside(p: &Point3<f64>, (lo, hi): &(Point3<f64>, Point3<f64>)) -> bool {
+    p.x > lo.x && p.y > lo.y && p.z > lo.z && p.x < hi.x && p.y < hi.y && p.z < hi.z
+}
+
+/// Points on the surfaces of boxes, for gripper-gripper collision tests.
+fn box_surface_points(boxes: &[(Point3<f64>, Point3<f64>)], per_axis: usize) -> Vec<Point3<f64>> {
+    let mut out = Vec::new();
+    for (lo, hi) in boxes {
+        for i in 0..=per_axis {
+            for j in 0..=per_axis {
+                for k in 0..=per_axis {
+                    let on_face = [i, j, k].iter().any(|&v| v == 0 || v == per_axis);
+                    if on_face {
+                        let f = |a: f64, b: f64, s: usize| a + (b - a) * s as f64 / per_axis as f64;
+                        out.push(Point3::new(f(lo.x, hi.x, i), f(lo.y, hi.y, j), f(lo.z, hi.z, k)));
+                    }
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Perpendicular unit vectors to `axis`.
+fn basis(axis: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
+    let helper = if axis.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
+    let e1 = axis.cross(&helper).normalize();
+    let e2 = axis.cross(&e1);
+    (e1, e2)
+}
+
+/// Finds antipodal grasp candidates, best first (without approach directions).
+fn candidates(mesh: &Mesh, settings: &GraspSettings) -> Vec<Candidate> {
+    let areas: Vec<f64> = (0..mesh.triangles.len())
+        .map(|t| {
+            let [a, b, c] = mesh.triangle(t).map(|p| p.cast::<f64>());
+            (b - a).cross(&(c - a)).norm()
+        })
+        .collect();
+    let total: f64 = areas.iter().sum();
+    let mut cdf = Vec::with_capacity(areas.len());
+    let mut acc = 0.0;
+    for a in &areas {
+        acc += a / total;
+        cdf.push(acc);
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(settings.seed);
+    let seeds: Vec<(usize, f64, f64)> = (0..settings.candidates)
+        .map(|_| {
+            let r: f64 = rng.random();
+            let t = cdf.partition_point(|&c| c < r).min(areas.len() - 1);
+            (t, rng.random(), rng.random())
+        })
+        .collect();
+    let centroid = mesh.surface_centroid();
+    let (lo, hi) = mesh.bounds();
+    let radius = 0.5 * (hi - lo).cast::<f64>().norm();
+    let cos_cone = settings.friction_cone_rad.cos();
+    let mut found: Vec<Candidate> = seeds
+        .par_iter()
+        .filter_map(|&(t, mut u, mut v)| {
+            if u + v > 1.0 {
+                u = 1.0 - u;
+                v = 1.0 - v;
+            }
+            let [a, b, c] = mesh.triangle(t).map(|p| p.cast::<f64>());
+            let p = a + (b - a) * u + (c - a) * v;
+            let axis = -mesh.face_normal(t).cast::<f64>();
+            let hits = mesh.line_hits(&p, &axis);
+            let (first, last) = (hits.first()?, hits.last()?);
+            let width = last.0 - first.0;
+            if width < settings.min_width_m || width > settings.max_width_m {
+                return None;
+            }
+            let n1 = mesh.face_normal(first.1).cast::<f64>();
+            let n2 = mesh.face_normal(last.1).cast::<f64>();
+            let (d1, d2) = (n1.dot(&axis).abs(), n2.dot(&axis).abs());
+            if d1 < cos_cone || d2 < cos_cone {
+                return None;
+            }
+            let contacts = [p + axis * first.0, p + axis * last.0];
+            let center = Point3::from((contacts[0].coords + contacts[1].coords) * 0.5);
+            let to_centroid = centroid - center;
+            let torque_arm = (to_centroid - axis * to_centroid.dot(&axis)).norm();
+            let quality = 0.5 * (d1 + d2) - 1.5 * torque_arm / radius;
+            Some(Candidate { center, axis, width, contacts, quality })
+        })
+        .collect();
+    found.sort_by(|a, b| b.quality.total_cmp(&a.quality));
+    found
+}
+
+/// The gripper's pads in its TCP frame for an opening, as points.
+fn pad_points(opening: f64) -> Vec<Point3<f64>> {
+    let z0 = FINGER_MOUNT_M - TCP_FROM_BASE_M;
+    let mut pts = Vec::new();
+    for side in [-1.0, 1.0] {
+        for i in 0..=6 {
+            for j in 0..=4 {
+                let y = -0.5 * FINGER_WIDTH_M + FINGER_WIDTH_M * j as f64 / 4.0;
+                let z = z0 + FINGER_LENGTH_M * i as f64 / 6.0;
+                pts.push(Point3::new(side * 0.5 * opening, y, z));
+            }
+        }
+    }
+    pts
+}
+
+/// Tries approach directions about the candidate's axis; returns the grasp
+/// with the approach that keeps the object and `obstacles` (object-frame
+/// points that must stay outside the gripper) clear, preferring clearance
+/// from the palm.
+fn with_approach(c: &Candidate, vertices: &[Point3<f64>], obstacles: &[Point3<f64>]) -> Option<Grasp> {
+    let (e1, e2) = basis(&c.axis);
+    // Fingers need 1.5 mm of slack beyond the contacts before a vertex counts as a collision.
+    let boxes = gripper_boxes(c.width + 0.003);
+    let z_mount = FINGER_MOUNT_M - TCP_FROM_BASE_M;
+    let mut best: Option<(f64, Grasp)> = None;
+    for k in 0..24 {
+        let psi = std::f64::consts::TAU * k as f64 / 24.0;
+        let approach = e1 * psi.cos() + e2 * psi.sin();
+        let grasp = Grasp {
+            center: c.center.coords.into(),
+            axis: c.axis.into(),
+            approach: approach.into(),
+            width_m: c.width,
+            contacts: [c.contacts[0].coords.into(), c.contacts[1].coords.into()],
+            quality: c.quality,
+        };
+        let to_gripper = grasp.object_to_gripper();
+        let mut clearance = f64::INFINITY;
+        let mut collides = false;
+        for v in vertices {
+            let p = to_gripper * v;
+            if boxes.iter().any(|b| inside(&p, b)) {
+                collides = true;
+                break;
+            }
+            if p.x.abs() < 0.0416 && p.y.abs() < 0.0345 {
+                clearance = clearance.min(p.z - z_mount);
+            }
+        }
+        if collides || obstacles.iter().any(|o| boxes.iter().any(|b| inside(&(to_gripper * o), b))) {
+            continue;
+        }
+        if best.as_ref().is_none_or(|(c, _)| clearance > *c) {
+            best = Some((clearance, grasp));
+        }
+    }
+    best.map(|(_, g)| g)
+}
+
+/// The left arm's grasp: the best collision-free candidate.
+pub fn plan_left_grasp(mesh: &Mesh, settings: &GraspSettings) -> Result<Grasp, SimError> {
+    let vertices = sample_vertices(mesh, 3000);
+    let found = candidates(mesh, settings);
+    found.iter().take(200).find_map(|c| with_approach(c, &vertices, &[])).ok_or_else(|| {
+        SimError::Invalid(format!(
+            "no antipodal grasp fits the gripper: the object needs two opposite faces between {:.0} and {:.0} mm apart \
+             ({} candidates tried); check the object's scale",
+            settings.min_width_m * 1e3,
+            settings.max_width_m * 1e3,
+            settings.candidates
+        ))
+    })
+}
+
+/// The right arm's regrasp at handover: pads away from the left pads, no
+/// collision with the left gripper, preferring a different closing axis.
+pub fn plan_right_grasp(mesh: &Mesh, left: &Grasp, settings: &GraspSettings) -> Result<Grasp, SimError> {
+    let vertices = sample_vertices(mesh, 3000);
+    let left_to_object = left.object_to_gripper().inverse();
+    let left_gripper: Vec<Point3<f64>> = box_surface_points(&gripper_boxes(left.width_m), 6).iter().map(|p| left_to_object * p).collect();
+    let left_pads: Vec<Point3<f64>> = pad_points(left.width_m).iter().map(|p| left_to_object * p).collect();
+    let left_axis = Vector3::from(left.axis);
+    let settings = GraspSettings { seed: settings.seed ^ 0x5eed, ..*settings };
+    let found = candidates(mesh, &settings);
+    let separation = |g: &Grasp| -> f64 {
+        let pads: Vec<Point3<f64>> = pad_points(g.width_m).iter().map(|p| g.object_to_gripper().inverse() * p).collect();
+        pads.iter()
+            .flat_map(|a| left_pads.iter().map(move |b| (a - b).norm()))
+            .fold(f64::INFINITY, f64::min)
+    };
+    let mut best: Option<(f64, Grasp)> = None;
+    for c in found.iter().take(300) {
+        let Some(g) = with_approach(c, &vertices, &left_gripper) else { continue };
+        let sep = separation(&g);
+        if sep < 0.004 {
+            continue;
+        }
+        let score = g.quality + (sep.min(0.03) / 0.03) + 0.5 * (1.0 - Vector3::from(g.axis).dot(&left_axis).abs());
+        if best.as_ref().is_none_or(|(s, _)| score > *s) {
+            best = Some((score, g));
+        }
+    }
+    best.map(|(_, g)| g).ok_or_else(|| {
+        SimError::Invalid("no regrasp for the handover: every antipodal grasp of the right gripper collides with the left gripper or overlaps its fingers".into())
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::{Material, MeshBuilder};
+
+    fn bar() -> Mesh {
+        // 80 x 20 x 30 mm bar: the only graspable widths are 20 and 30 mm.
+        let mut b = MeshBuilder::new(Material::color([0.5; 3]));
+        b.cuboid(Point3::new(-0.04, -0.01, -0.015), Point3::new(0.04, 0.01, 0.015), 0);
+        let mut m = b.finish();
+        m.compute_normals();
+        m
+    }
+
+    fn settings() -> GraspSettings {
+        GraspSettings { candidates: 400, friction_cone_rad: 0.35, min_width_m: 0.002, max_width_m: 0.046, seed: 3 }
+    }
+
+    #[test]
+    fn left_grasp_is_antipodal_across_a_narrow_side_and_clear_of_the_gripper() {
+        let mesh = bar();
+        let g = plan_left_grasp(&mesh, &settings()).unwrap();
+        assert!((g.width_m - 0.02).abs() < 1e-9 || (g.width_m - 0.03).abs() < 1e-9, "{}", g.width_m);
+        let axis = Vector3::from(g.axis);
+        assert!(axis.x.abs() < 1e-9, "never across the 80 mm length: {axis}");
+        // Contacts lie on the surface, on the axis, and the TCP between them.
+        let to_gripper = g.object_to_gripper();
+        for c in &g.contacts {
+            let p = to_gripper * Point3::from(*c);
+            assert!(p.y.abs() < 1e-9 && p.z.abs() < 1e-9);
+            assert!((p.x.abs() - 0.5 * g.width_m).abs() < 1e-9, "{p}");
+        }
+        // Stable: the axis passes through the centroid.
+        let centre = to_gripper * Point3::origin();
+        assert!(centre.y.abs() < 0.003 && centre.z.abs() < 0.003, "{centre}");
+        // No vertex inside the palm or fingers.
+        for v in &mesh.positions {
+            let p = to_gripper * v.cast::<f64>();
+            assert!(!gripper_boxes(g.width_m + 0.003).iter().any(|b| inside(&p, b)));
+        }
+    }
+
+    #[test]
+    fn right_grasp_keeps_away_from_the_left_pads() {
+        let mesh = bar();
+        let left = plan_left_grasp(&mesh, &settings()).unwrap();
+        let right = plan_right_grasp(&mesh, &left, &settings()).unwrap();
+        let l = Point3::from(left.center);
+        let r = Point3::from(right.center);
+        assert!((l - r).norm() > 0.01, "right grasp {r} too close to left {l}");
+        // Approaches do not point at each other's gripper: the right palm is not on the left palm's side.
+        assert!(Vector3::from(left.approach).dot(&Vector3::from(right.approach)) < 0.9);
+    }
+}
