@@ -33,6 +33,9 @@ pub struct Grasp {
     pub approach: [f64; 3],
     /// Distance between the contacts = the finger opening, metres.
     pub width_m: f64,
+    /// How far towards the fingertips the contacts sit from the TCP, metres
+    /// (0 = mid-pad; larger = held nearer the tips, for crowded handovers).
+    pub depth_m: f64,
     pub contacts: [[f64; 3]; 2],
     /// Higher is better: antipodality minus a torque penalty.
     pub quality: f64,
@@ -45,7 +48,8 @@ impl Grasp {
         let z = Vector3::from(self.approach);
         let y = z.cross(&x);
         let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z])));
-        let gripper_to_object = Pose::from_parts(nalgebra::Translation3::from(Vector3::from(self.center)), rotation);
+        let tcp = Vector3::from(self.center) - z * self.depth_m;
+        let gripper_to_object = Pose::from_parts(nalgebra::Translation3::from(tcp), rotation);
         gripper_to_object.inverse()
     }
 }
@@ -183,11 +187,17 @@ fn pad_points(opening: f64) -> Vec<Point3<f64>> {
     pts
 }
 
-/// Tries approach directions about the candidate's axis; returns the grasp
-/// with the approach that keeps the object and `obstacles` (object-frame
-/// points that must stay outside the gripper) clear, preferring clearance
-/// from the palm.
+/// Tries approach directions about the candidate's axis, and grasp depths
+/// from mid-pad towards the fingertips; returns the grasp at the smallest
+/// depth that keeps the object and `obstacles` (object-frame points that must
+/// stay outside the gripper) clear, preferring clearance from the palm.
 fn with_approach(c: &Candidate, vertices: &[Point3<f64>], obstacles: &[Point3<f64>]) -> Option<Grasp> {
+    GRASP_DEPTHS_M.into_iter().find_map(|depth| with_approach_at_depth(c, depth, vertices, obstacles))
+}
+
+const GRASP_DEPTHS_M: [f64; 3] = [0.0, 0.01, 0.018];
+
+fn with_approach_at_depth(c: &Candidate, depth_m: f64, vertices: &[Point3<f64>], obstacles: &[Point3<f64>]) -> Option<Grasp> {
     let (e1, e2) = basis(&c.axis);
     // Fingers need 1.5 mm of slack beyond the contacts before a vertex counts as a collision.
     let boxes = gripper_boxes(c.width + 0.003);
@@ -201,6 +211,7 @@ fn with_approach(c: &Candidate, vertices: &[Point3<f64>], obstacles: &[Point3<f6
             axis: c.axis.into(),
             approach: approach.into(),
             width_m: c.width,
+            depth_m,
             contacts: [c.contacts[0].coords.into(), c.contacts[1].coords.into()],
             quality: c.quality,
         };
@@ -227,11 +238,52 @@ fn with_approach(c: &Candidate, vertices: &[Point3<f64>], obstacles: &[Point3<f6
     best.map(|(_, g)| g)
 }
 
-/// The left arm's grasp: the best collision-free candidate.
-pub fn plan_left_grasp(mesh: &Mesh, settings: &GraspSettings) -> Result<Grasp, SimError> {
+/// Collision-free left grasps, best first, skipping near-duplicates.
+fn left_grasps(mesh: &Mesh, settings: &GraspSettings) -> Vec<Grasp> {
     let vertices = sample_vertices(mesh, 3000);
     let found = candidates(mesh, settings);
-    found.iter().take(200).find_map(|c| with_approach(c, &vertices, &[])).ok_or_else(|| {
+    let mut out: Vec<Grasp> = Vec::new();
+    for c in found.iter().take(200) {
+        let duplicate = out.iter().any(|g| {
+            (Point3::from(g.center) - c.center).norm() < 0.004 && Vector3::from(g.axis).dot(&c.axis).abs() > 0.95
+        });
+        if duplicate {
+            continue;
+        }
+        if let Some(g) = with_approach(c, &vertices, &[]) {
+            out.push(g);
+            if out.len() >= 12 {
+                break;
+            }
+        }
+    }
+    out
+}
+
+/// The left arm's grasp: the best collision-free candidate.
+pub fn plan_left_grasp(mesh: &Mesh, settings: &GraspSettings) -> Result<Grasp, SimError> {
+    left_grasps(mesh, settings).into_iter().next().ok_or_else(|| no_grasp(settings))
+}
+
+/// The grasps of both arms: the best left grasp for which a handover regrasp
+/// exists (as a planner moves on to the next grasp when one is infeasible).
+pub fn plan_grasp_pair(mesh: &Mesh, settings: &GraspSettings) -> Result<(Grasp, Grasp), SimError> {
+    let lefts = left_grasps(mesh, settings);
+    if lefts.is_empty() {
+        return Err(no_grasp(settings));
+    }
+    let mut last_error = None;
+    for left in lefts {
+        match plan_right_grasp(mesh, &left, settings) {
+            Ok(right) => return Ok((left, right)),
+            Err(e) => last_error = Some(e),
+        }
+    }
+    Err(last_error.unwrap())
+}
+
+fn no_grasp(settings: &GraspSettings) -> SimError {
+    {
         SimError::Invalid(format!(
             "no antipodal grasp fits the gripper: the object needs two opposite faces between {:.0} and {:.0} mm apart \
              ({} candidates tried); check the object's scale",
@@ -239,7 +291,7 @@ pub fn plan_left_grasp(mesh: &Mesh, settings: &GraspSettings) -> Result<Grasp, S
             settings.max_width_m * 1e3,
             settings.candidates
         ))
-    })
+    }
 }
 
 /// The right arm's regrasp at handover: pads away from the left pads, no
@@ -258,14 +310,20 @@ pub fn plan_right_grasp(mesh: &Mesh, left: &Grasp, settings: &GraspSettings) -> 
             .flat_map(|a| left_pads.iter().map(move |b| (a - b).norm()))
             .fold(f64::INFINITY, f64::min)
     };
+    let scored: Vec<(f64, Grasp)> = found
+        .par_iter()
+        .take(400)
+        .flat_map_iter(|c| GRASP_DEPTHS_M.into_iter().filter_map(|depth| with_approach_at_depth(c, depth, &vertices, &left_gripper)))
+        .filter_map(|g| {
+            let sep = separation(&g);
+            (sep >= 0.004).then(|| {
+                let score = g.quality + (sep.min(0.03) / 0.03) + 0.5 * (1.0 - Vector3::from(g.axis).dot(&left_axis).abs()) - 10.0 * g.depth_m;
+                (score, g)
+            })
+        })
+        .collect();
     let mut best: Option<(f64, Grasp)> = None;
-    for c in found.iter().take(300) {
-        let Some(g) = with_approach(c, &vertices, &left_gripper) else { continue };
-        let sep = separation(&g);
-        if sep < 0.004 {
-            continue;
-        }
-        let score = g.quality + (sep.min(0.03) / 0.03) + 0.5 * (1.0 - Vector3::from(g.axis).dot(&left_axis).abs());
+    for (score, g) in scored {
         if best.as_ref().is_none_or(|(s, _)| score > *s) {
             best = Some((score, g));
         }
@@ -304,7 +362,7 @@ mod tests {
         let to_gripper = g.object_to_gripper();
         for c in &g.contacts {
             let p = to_gripper * Point3::from(*c);
-            assert!(p.y.abs() < 1e-9 && p.z.abs() < 1e-9);
+            assert!(p.y.abs() < 1e-9 && (p.z - g.depth_m).abs() < 1e-9);
             assert!((p.x.abs() - 0.5 * g.width_m).abs() < 1e-9, "{p}");
         }
         // Stable: the axis passes through the centroid.

@@ -10,6 +10,9 @@ pub mod loaders;
 pub mod mesh;
 pub mod raster;
 pub mod scene;
+pub mod simulate;
+
+pub use simulate::{SimConfig, SimSummary, Simulation};
 
 use std::path::{Path, PathBuf};
 

@@ -189,6 +189,11 @@ impl Mesh {
         if len > 0.0 { n / len } else { Vector3::z() }
     }
 
+    /// Distance from `p` to the nearest point of the surface (brute force).
+    pub fn distance_to_surface(&self, p: &Point3<f32>) -> f32 {
+        (0..self.triangles.len()).map(|t| distance_to_triangle(p, &self.triangle(t))).fold(f32::INFINITY, f32::min)
+    }
+
     /// Every crossing of the line `origin + s·direction` with the mesh, as
     /// (s, triangle) sorted by s (s may be negative).
     pub fn line_hits(&self, origin: &Point3<f64>, direction: &Vector3<f64>) -> Vec<(f64, usize)> {
@@ -218,6 +223,44 @@ impl Mesh {
         hits.sort_by(|x, y| x.0.total_cmp(&y.0));
         hits
     }
+}
+
+/// Distance from `p` to the triangle `t` (Ericson, Real-Time Collision Detection, 5.1.5).
+pub fn distance_to_triangle(p: &Point3<f32>, t: &[Point3<f32>; 3]) -> f32 {
+    let [a, b, c] = *t;
+    let (ab, ac, ap) = (b - a, c - a, p - a);
+    let (d1, d2) = (ab.dot(&ap), ac.dot(&ap));
+    if d1 <= 0.0 && d2 <= 0.0 {
+        return (p - a).norm();
+    }
+    let bp = p - b;
+    let (d3, d4) = (ab.dot(&bp), ac.dot(&bp));
+    if d3 >= 0.0 && d4 <= d3 {
+        return (p - b).norm();
+    }
+    let vc = d1 * d4 - d3 * d2;
+    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+        let v = d1 / (d1 - d3);
+        return (p - (a + ab * v)).norm();
+    }
+    let cp = p - c;
+    let (d5, d6) = (ab.dot(&cp), ac.dot(&cp));
+    if d6 >= 0.0 && d5 <= d6 {
+        return (p - c).norm();
+    }
+    let vb = d5 * d2 - d1 * d6;
+    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
+        let w = d2 / (d2 - d6);
+        return (p - (a + ac * w)).norm();
+    }
+    let va = d3 * d6 - d5 * d4;
+    if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
+        let w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+        return (p - (b + (c - b) * w)).norm();
+    }
+    let denom = 1.0 / (va + vb + vc);
+    let (v, w) = (vb * denom, vc * denom);
+    (p - (a + ab * v + ac * w)).norm()
 }
 
 /// Incremental builder for procedural meshes.

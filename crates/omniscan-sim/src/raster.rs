@@ -335,31 +335,25 @@ fn rasterize_tile(
     for &id in bin {
         let tri = &triangles[id as usize];
         let [a, b, c] = tri.xy;
-        let area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]);
-        let inv_area = 1.0 / area;
-        // w_i(x, y) = A_i x + B_i y + C_i, normalised by the area.
-        let edge = |p: [f32; 2], q: [f32; 2]| {
-            let a = (p[1] - q[1]) * inv_area;
-            let b = (q[0] - p[0]) * inv_area;
-            let c = (p[0] * q[1] - p[1] * q[0]) * inv_area;
-            (a, b, c)
-        };
-        let e0 = edge(b, c);
-        let e1 = edge(c, a);
-        let e2 = edge(a, b);
+        // Barycentrics relative to vertex a: with a at the origin the edge
+        // functions have no constant term, which keeps them accurate in f32
+        // for small triangles far from the image origin.
+        let (bx, by) = (b[0] - a[0], b[1] - a[1]);
+        let (cx, cy) = (c[0] - a[0], c[1] - a[1]);
+        let inv_area = 1.0 / (bx * cy - by * cx);
         let x0 = tri.bbox[0].max(ox);
         let x1 = tri.bbox[2].min(ox + tw - 1);
         let y0 = tri.bbox[1].max(oy);
         let y1 = tri.bbox[3].min(oy + th - 1);
         let [z0, z1, z2] = tri.inv_z;
         for y in y0..=y1 {
-            let py = y as f32 + 0.5;
+            let py = y as f32 + 0.5 - a[1];
             let row = ((y - oy) * tw) as usize;
             for x in x0..=x1 {
-                let px = x as f32 + 0.5;
-                let w0 = e0.0 * px + e0.1 * py + e0.2;
-                let w1 = e1.0 * px + e1.1 * py + e1.2;
-                let w2 = e2.0 * px + e2.1 * py + e2.2;
+                let px = x as f32 + 0.5 - a[0];
+                let w1 = (px * cy - py * cx) * inv_area;
+                let w2 = (bx * py - by * px) * inv_area;
+                let w0 = 1.0 - w1 - w2;
                 if w0 < 0.0 || w1 < 0.0 || w2 < 0.0 {
                     continue;
                 }

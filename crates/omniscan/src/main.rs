@@ -1,1 +1,373 @@
-fn main(){}
+//! The `omniscan` command line: simulate in-hand scans, check and export
+//! captures, print the scan plan, and benchmark.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde_json::json;
+
+use omniscan_core::capture::{Arm, Capture};
+use omniscan_core::nerfstudio::{ExportOptions, export_nerfstudio};
+use omniscan_core::plan::ScanPlanConfig;
+use omniscan_core::poses::ViewSet;
+use omniscan_sim::{SimConfig, Simulation};
+
+#[derive(Parser)]
+#[command(name = "omniscan", version, about = "360° Gaussian-splat digital twins from bimanual in-hand scans (Omni-Scan)")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run the whole pipeline on a built-in object: simulate a scan, check it, export it.
+    Demo {
+        /// Where to write the demo's outputs.
+        #[arg(long, default_value = "omniscan-demo")]
+        out: PathBuf,
+        /// Built-in object to scan.
+        #[arg(long, default_value = "builtin:flashlight")]
+        object: String,
+    },
+    /// Simulate a bimanual in-hand scan and write a capture with ground truth.
+    Sim(SimArgs),
+    /// Check a capture and print its summary.
+    Validate {
+        /// Capture directory (or its capture.json).
+        capture: PathBuf,
+        /// Print the summary as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Write a nerfstudio transforms.json (OpenGL camera axes, object masks).
+    ExportNerfstudio {
+        capture: PathBuf,
+        #[arg(long, value_enum)]
+        arm: ArmChoice,
+        #[arg(long)]
+        out: PathBuf,
+        /// Leave out mask_path (train on whole images).
+        #[arg(long)]
+        no_masks: bool,
+    },
+    /// Print the gripper poses of the scan trajectory a robot would execute.
+    Plan {
+        #[command(flatten)]
+        plan: PlanArgs,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Benchmarks (numbers go here, not in tests).
+    Bench {
+        #[command(subcommand)]
+        which: BenchCommand,
+    },
+}
+
+#[derive(Subcommand)]
+enum BenchCommand {
+    /// Time a full simulated capture: both arms' trajectories plus the empty pass.
+    Sim {
+        #[arg(long, default_value = "builtin:flashlight")]
+        object: String,
+        #[arg(long, default_value_t = 640)]
+        width: u32,
+        #[arg(long, default_value_t = 480)]
+        height: u32,
+        /// Directory for the capture (a temporary one if not given).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum ArmChoice {
+    Left,
+    Right,
+    /// Both arms in the left gripper's frame, merged with the handover estimate T_lh⁻¹·T_rh.
+    Both,
+}
+
+#[derive(Args, Clone)]
+struct PlanArgs {
+    /// Wrist angles per latitude.
+    #[arg(long, default_value_t = 20)]
+    wrist_angles: u32,
+    /// Number of latitudes.
+    #[arg(long, default_value_t = 5)]
+    latitudes: u32,
+    /// Lowest latitude, degrees.
+    #[arg(long, default_value_t = -10.0, allow_hyphen_values = true)]
+    latitude_min_deg: f64,
+    /// Highest latitude, degrees.
+    #[arg(long, default_value_t = 70.0, allow_hyphen_values = true)]
+    latitude_max_deg: f64,
+}
+
+impl PlanArgs {
+    fn config(&self) -> ScanPlanConfig {
+        ScanPlanConfig {
+            wrist_angles: self.wrist_angles,
+            latitudes: self.latitudes,
+            latitude_min_rad: self.latitude_min_deg.to_radians(),
+            latitude_max_rad: self.latitude_max_deg.to_radians(),
+            ..ScanPlanConfig::default()
+        }
+    }
+}
+
+#[derive(Args)]
+struct SimArgs {
+    /// `builtin:NAME` (flashlight, t_connector, wire_connector, l_bracket, remote) or a mesh file (.obj/.stl/.ply).
+    #[arg(long, default_value = "builtin:flashlight")]
+    object: String,
+    /// Output capture directory.
+    #[arg(long)]
+    out: PathBuf,
+    /// Metres per mesh unit (0.01 for a mesh in centimetres).
+    #[arg(long)]
+    object_scale: Option<f64>,
+    /// Image width, pixels.
+    #[arg(long, default_value_t = 640)]
+    width: u32,
+    /// Image height, pixels.
+    #[arg(long, default_value_t = 480)]
+    height: u32,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// A planted defect: geometric:dent|bump|cut,size_mm=S or visual:scratch|tape,size_mm=S.
+    #[arg(long)]
+    defect: Option<String>,
+    /// Rotation of the object at handover, degrees (the recorded handover stays as planned).
+    #[arg(long, default_value_t = 0.0)]
+    slip_deg: f64,
+    /// Translation of the object at handover, millimetres.
+    #[arg(long, default_value_t = 0.0)]
+    slip_mm: f64,
+    /// Supersampling per axis (2 = 4 samples per pixel).
+    #[arg(long, default_value_t = 2)]
+    supersample: u32,
+    /// Sensor depth noise at 1 m, millimetres (grows with distance squared); 0 for clean depth.
+    #[arg(long, default_value_t = 2.0)]
+    depth_noise_mm_at_1m: f64,
+    /// Directory with the YuMi gripper meshes (e.g. ../shared/data/grippers/yumi).
+    #[arg(long)]
+    gripper_dir: Option<PathBuf>,
+    /// Camera distance from the object, metres (default: from the object's size).
+    #[arg(long)]
+    camera_distance_m: Option<f64>,
+    /// Skip the empty-gripper calibration pass.
+    #[arg(long)]
+    no_empty_pass: bool,
+    #[command(flatten)]
+    plan: PlanArgs,
+    /// Print the summary as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+impl SimArgs {
+    fn config(&self) -> SimConfig {
+        SimConfig {
+            object: self.object.clone(),
+            object_scale: self.object_scale,
+            width: self.width,
+            height: self.height,
+            seed: self.seed,
+            defect: self.defect.clone(),
+            slip_deg: self.slip_deg,
+            slip_mm: self.slip_mm,
+            supersample: self.supersample,
+            depth_noise_m_at_1m: self.depth_noise_mm_at_1m * 1e-3,
+            plan: self.plan.config(),
+            gripper_dir: self.gripper_dir.clone(),
+            camera_distance_m: self.camera_distance_m,
+            empty_pass: !self.no_empty_pass,
+        }
+    }
+}
+
+fn main() {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()))
+        .with_writer(std::io::stderr)
+        .init();
+    if let Err(e) = run(Cli::parse()) {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn progress_bar(total: usize, what: &str) -> ProgressBar {
+    let bar = ProgressBar::new(total as u64);
+    bar.set_style(
+        ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} frames, {elapsed_precise} (eta {eta})")
+            .unwrap()
+            .progress_chars("=> "),
+    );
+    bar.set_message(what.to_string());
+    bar
+}
+
+fn simulate(config: SimConfig, out: &Path) -> Result<omniscan_sim::SimSummary> {
+    let sim = Simulation::new(config).context("cannot set up the simulation")?;
+    let bar = progress_bar(sim.frames.len(), "simulating");
+    let summary = sim.run(out, &|done, _| bar.set_position(done as u64)).with_context(|| format!("simulation into {} failed", out.display()))?;
+    bar.finish_and_clear();
+    Ok(summary)
+}
+
+fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Demo { out, object } => {
+            let capture_dir = out.join("capture");
+            let config = SimConfig { object, ..SimConfig::default() };
+            eprintln!("1/3 simulating a bimanual scan of {} into {}", config.object, capture_dir.display());
+            let summary = simulate(config, &capture_dir)?;
+            eprintln!(
+                "    {} frames + {} empty-gripper frames in {:.1} s",
+                summary.frames, summary.empty_frames, summary.seconds
+            );
+            eprintln!("2/3 validating the capture");
+            let capture = Capture::load(&capture_dir)?;
+            let s = capture.summary();
+            eprintln!("    {}x{}, {} left, {} right, {} empty frames, ground truth: {}", s.width, s.height, s.left_frames, s.right_frames, s.empty_frames, s.ground_truth);
+            eprintln!("3/3 exporting both arms (handover-merged) for nerfstudio");
+            let export = export_nerfstudio(&capture, &out.join("nerfstudio"), ExportOptions { views: ViewSet::merged_from_handover(&capture), masks: true })?;
+            println!(
+                "{}",
+                serde_json::to_string_pretty(&json!({
+                    "capture": capture_dir,
+                    "summary": s,
+                    "nerfstudio": export.transforms,
+                    "seconds": summary.seconds,
+                }))?
+            );
+        }
+        Command::Sim(args) => {
+            let summary = simulate(args.config(), &args.out)?;
+            if args.json {
+                println!("{}", serde_json::to_string_pretty(&summary)?);
+            } else {
+                println!(
+                    "wrote {} ({} frames, {} empty frames) in {:.1} s",
+                    summary.capture.display(),
+                    summary.frames,
+                    summary.empty_frames,
+                    summary.seconds
+                );
+            }
+        }
+        Command::Validate { capture, json } => {
+            let loaded = Capture::load(&capture)?;
+            let summary = loaded.summary();
+            if json {
+                println!("{}", serde_json::to_string(&summary)?);
+            } else {
+                println!(
+                    "{}: valid capture v{}, {}x{}, {} left / {} right / {} empty frames, depth: {}, ground truth: {}",
+                    capture.display(),
+                    summary.version,
+                    summary.width,
+                    summary.height,
+                    summary.left_frames,
+                    summary.right_frames,
+                    summary.empty_frames,
+                    summary.depth,
+                    summary.ground_truth
+                );
+            }
+        }
+        Command::ExportNerfstudio { capture, arm, out, no_masks } => {
+            let loaded = Capture::load(&capture)?;
+            let views = match arm {
+                ArmChoice::Left => ViewSet::Arm(Arm::Left),
+                ArmChoice::Right => ViewSet::Arm(Arm::Right),
+                ArmChoice::Both => ViewSet::merged_from_handover(&loaded),
+            };
+            let summary = export_nerfstudio(&loaded, &out, ExportOptions { views, masks: !no_masks })?;
+            println!("wrote {} ({} frames)", summary.transforms.display(), summary.frames);
+        }
+        Command::Plan { plan, json } => {
+            let config = plan.config();
+            if let Err(e) = config.validate() {
+                bail!("invalid scan plan: {e}");
+            }
+            let left = config.trajectory(Arm::Left);
+            let right = config.trajectory(Arm::Right);
+            if json {
+                println!(
+                    "{}",
+                    serde_json::to_string_pretty(&json!({
+                        "config": config,
+                        "units": "metres and radians; poses are gripper (TCP) to world, 4x4 row-major",
+                        "camera_to_world": omniscan_core::RigidTransform(config.camera_to_world()),
+                        "left": left,
+                        "right": right,
+                        "left_handover": omniscan_core::RigidTransform(config.left_handover_pose()),
+                        "right_handover": "computed from the regrasp chosen on the object at handover: T_rh = T_lh · T_lo · T_ro⁻¹",
+                    }))?
+                );
+            } else {
+                println!("scan plan: {} wrist angles x {} latitudes = {} poses per arm", config.wrist_angles, config.latitudes, left.len());
+                for j in 0..config.latitudes {
+                    println!("  latitude {:>6.1}°", config.latitude(j).to_degrees());
+                }
+                let t = config.scan_point_m;
+                println!("object held at ({:.3}, {:.3}, {:.3}) m; camera {:.2} m away", t[0], t[1], t[2], config.camera_distance_m);
+                println!("use --json for the poses");
+            }
+        }
+        Command::Bench { which: BenchCommand::Sim { object, width, height, out, json } } => {
+            let tmp;
+            let dir = match out {
+                Some(d) => d,
+                None => {
+                    tmp = tempfile::tempdir()?;
+                    tmp.path().join("capture")
+                }
+            };
+            let config = SimConfig { object, width, height, ..SimConfig::default() };
+            let setup = Instant::now();
+            let sim = Simulation::new(config)?;
+            let setup_s = setup.elapsed().as_secs_f64();
+            let bar = progress_bar(sim.frames.len(), "bench sim");
+            let summary = sim.run(&dir, &|done, _| bar.set_position(done as u64))?;
+            bar.finish_and_clear();
+            let total = setup_s + summary.seconds;
+            let threads = rayon::current_num_threads();
+            if json {
+                println!(
+                    "{}",
+                    serde_json::to_string_pretty(&json!({
+                        "object": sim.config.object, "width": width, "height": height,
+                        "frames": summary.frames, "empty_frames": summary.empty_frames,
+                        "setup_s": setup_s, "render_and_write_s": summary.seconds, "total_s": total,
+                        "seconds_per_frame": summary.seconds / (summary.frames + summary.empty_frames) as f64,
+                        "threads": threads,
+                    }))?
+                );
+            } else {
+                println!(
+                    "{}x{} {}: {} frames + {} empty frames in {:.1} s total ({:.1} s setup, {:.3} s per frame, {} threads)",
+                    width,
+                    height,
+                    sim.config.object,
+                    summary.frames,
+                    summary.empty_frames,
+                    total,
+                    setup_s,
+                    summary.seconds / (summary.frames + summary.empty_frames) as f64,
+                    threads
+                );
+            }
+        }
+    }
+    Ok(())
+}
