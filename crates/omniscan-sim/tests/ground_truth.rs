@@ -94,13 +94,13 @@ fn object_depth_lies_on_the_mesh_in_both_grippers_and_handover_truth_holds() {
     // And the truth is consistent with the object's poses in each gripper.
     let truth = gt.object_to_left_gripper.0 * gt.object_to_right_gripper.0.inverse();
     let (a, t) = pose_difference(&truth, &gt.right_to_left.0);
-    assert!(a < 1e-6 && t < 1e-9, "{a} {t}");
+    assert!(a < 1e-6 && t < 1e-8, "{a} {t}");
     // Without slip the handover estimate is exact.
     let no_slip = Simulation::new(small_config("builtin:flashlight")).unwrap().capture_file();
     let h = &no_slip.handover;
     let estimate = handover_right_to_left(&h.left_gripper_to_world.0, &h.right_gripper_to_world.0);
     let (a, t) = pose_difference(&estimate, &no_slip.gt.unwrap().right_to_left.0);
-    assert!(a < 1e-6 && t < 1e-9);
+    assert!(a < 1e-6 && t < 1e-8, "no slip: {a} {t}");
 }
 
 fn files(dir: &std::path::Path) -> Vec<(String, Vec<u8>)> {
