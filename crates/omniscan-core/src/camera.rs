@@ -43,7 +43,10 @@ impl Intrinsics {
         if p.z <= 0.0 {
             return None;
         }
-        Some(Point2::new(self.fx * p.x / p.z + self.cx, self.fy * p.y / p.z + self.cy))
+        Some(Point2::new(
+            self.fx * p.x / p.z + self.cx,
+            self.fy * p.y / p.z + self.cy,
+        ))
     }
 
     /// Camera-space point at pixel coordinates `(u, v)` and depth `z` (metres along the optical axis).
@@ -59,11 +62,16 @@ impl Intrinsics {
     /// Checks the values a renderer or trainer relies on.
     pub fn validate(&self) -> Result<(), String> {
         if self.width == 0 || self.height == 0 {
-            return Err(format!("camera size {}x{} is empty", self.width, self.height));
+            return Err(format!(
+                "camera size {}x{} is empty",
+                self.width, self.height
+            ));
         }
         for (name, v) in [("fx", self.fx), ("fy", self.fy)] {
             if !v.is_finite() || v <= 0.0 {
-                return Err(format!("camera {name} must be a positive number of pixels, found {v}"));
+                return Err(format!(
+                    "camera {name} must be a positive number of pixels, found {v}"
+                ));
             }
         }
         for (name, v) in [("cx", self.cx), ("cy", self.cy)] {
@@ -92,7 +100,8 @@ impl Intrinsics {
 /// Converts an OpenCV camera-to-world pose (x right, y down, z forward) to the
 /// OpenGL / nerfstudio convention (x right, y up, z backward), as a 4x4 matrix.
 pub fn opencv_to_opengl(camera_to_world: &Pose) -> Matrix4<f64> {
-    camera_to_world.to_homogeneous() * Matrix4::from_diagonal(&nalgebra::Vector4::new(1.0, -1.0, -1.0, 1.0))
+    camera_to_world.to_homogeneous()
+        * Matrix4::from_diagonal(&nalgebra::Vector4::new(1.0, -1.0, -1.0, 1.0))
 }
 
 #[cfg(test)]
@@ -101,7 +110,14 @@ mod tests {
 
     #[test]
     fn project_unproject_round_trip() {
-        let k = Intrinsics { width: 640, height: 480, fx: 500.0, fy: 510.0, cx: 320.5, cy: 239.0 };
+        let k = Intrinsics {
+            width: 640,
+            height: 480,
+            fx: 500.0,
+            fy: 510.0,
+            cx: 320.5,
+            cy: 239.0,
+        };
         let p = Point3::new(0.05, -0.02, 0.4);
         let uv = k.project(&p).unwrap();
         let back = k.unproject(uv.x, uv.y, p.z);

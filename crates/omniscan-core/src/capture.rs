@@ -194,7 +194,11 @@ enum ImageKind {
 impl Capture {
     /// Resolves `path` (a capture directory or its `capture.json`) to the JSON file.
     pub fn json_path(path: &Path) -> PathBuf {
-        if path.is_dir() { path.join(CAPTURE_FILE) } else { path.to_path_buf() }
+        if path.is_dir() {
+            path.join(CAPTURE_FILE)
+        } else {
+            path.to_path_buf()
+        }
     }
 
     /// Reads and validates a capture, checking every referenced image.
@@ -214,11 +218,17 @@ impl Capture {
             ));
         }
         let file: CaptureFile = crate::io::read_json(&json)?;
-        let dir = json.parent().map(Path::to_path_buf).unwrap_or_else(|| PathBuf::from("."));
+        let dir = json
+            .parent()
+            .map(Path::to_path_buf)
+            .unwrap_or_else(|| PathBuf::from("."));
         let capture = Capture { dir, file };
         let problems = capture.structural_problems();
         if !problems.is_empty() {
-            return Err(CoreError::InvalidCapture { path: json, problems });
+            return Err(CoreError::InvalidCapture {
+                path: json,
+                problems,
+            });
         }
         Ok(capture)
     }
@@ -239,7 +249,11 @@ impl Capture {
 
     /// The frames held by one arm, with their indices in `frames`.
     pub fn arm_frames(&self, arm: Arm) -> impl Iterator<Item = (usize, &Frame)> {
-        self.file.frames.iter().enumerate().filter(move |(_, f)| f.arm == arm)
+        self.file
+            .frames
+            .iter()
+            .enumerate()
+            .filter(move |(_, f)| f.arm == arm)
     }
 
     pub fn summary(&self) -> CaptureSummary {
@@ -253,8 +267,14 @@ impl Capture {
             height: self.file.camera.intrinsics.height,
             ground_truth: self.file.gt.is_some(),
             depth: !frames.is_empty() && frames.iter().all(|f| f.depth_path.is_some()),
-            object_masks: frames.iter().filter(|f| f.object_mask_path.is_some()).count(),
-            gripper_masks: frames.iter().filter(|f| f.gripper_mask_path.is_some()).count(),
+            object_masks: frames
+                .iter()
+                .filter(|f| f.object_mask_path.is_some())
+                .count(),
+            gripper_masks: frames
+                .iter()
+                .filter(|f| f.gripper_mask_path.is_some())
+                .count(),
         }
     }
 
@@ -281,7 +301,9 @@ impl Capture {
                 if let Some(o) = frame.gripper_opening_m
                     && !(o.is_finite() && o >= 0.0)
                 {
-                    problems.push(format!("{list}[{i}].gripper_opening_m must be >= 0 metres, found {o}"));
+                    problems.push(format!(
+                        "{list}[{i}].gripper_opening_m must be >= 0 metres, found {o}"
+                    ));
                 }
             }
         }
@@ -292,14 +314,21 @@ impl Capture {
     /// camera's size, of the right pixel format. Runs in parallel.
     pub fn validate(&self) -> Result<()> {
         let mut checks: Vec<(String, String, ImageKind)> = Vec::new();
-        for (list, frames) in [("frames", &self.file.frames), ("empty_frames", &self.file.empty_frames)] {
+        for (list, frames) in [
+            ("frames", &self.file.frames),
+            ("empty_frames", &self.file.empty_frames),
+        ] {
             for (i, frame) in frames.iter().enumerate() {
                 let at = |key: &str| format!("{list}[{i}].{key}");
                 checks.push((at("file_path"), frame.file_path.clone(), ImageKind::Rgb));
                 let optional = [
                     ("depth_path", &frame.depth_path, ImageKind::Depth),
                     ("object_mask_path", &frame.object_mask_path, ImageKind::Mask),
-                    ("gripper_mask_path", &frame.gripper_mask_path, ImageKind::Mask),
+                    (
+                        "gripper_mask_path",
+                        &frame.gripper_mask_path,
+                        ImageKind::Mask,
+                    ),
                 ];
                 for (key, path, kind) in optional {
                     if let Some(p) = path {
@@ -309,7 +338,11 @@ impl Capture {
                 if let Some(gt) = &frame.gt {
                     let gt_files = [
                         ("gt.object_mask_path", &gt.object_mask_path, ImageKind::Mask),
-                        ("gt.gripper_mask_path", &gt.gripper_mask_path, ImageKind::Mask),
+                        (
+                            "gt.gripper_mask_path",
+                            &gt.gripper_mask_path,
+                            ImageKind::Mask,
+                        ),
                         ("gt.depth_path", &gt.depth_path, ImageKind::Depth),
                     ];
                     for (key, path, kind) in gt_files {
@@ -320,7 +353,10 @@ impl Capture {
                 }
             }
         }
-        let (w, h) = (self.file.camera.intrinsics.width, self.file.camera.intrinsics.height);
+        let (w, h) = (
+            self.file.camera.intrinsics.width,
+            self.file.camera.intrinsics.height,
+        );
         let mut problems: Vec<String> = checks
             .par_iter()
             .filter_map(|(at, rel, kind)| self.check_image(at, rel, *kind, w, h).err())
@@ -329,11 +365,21 @@ impl Capture {
         if problems.is_empty() {
             Ok(())
         } else {
-            Err(CoreError::InvalidCapture { path: self.dir.join(CAPTURE_FILE), problems })
+            Err(CoreError::InvalidCapture {
+                path: self.dir.join(CAPTURE_FILE),
+                problems,
+            })
         }
     }
 
-    fn check_image(&self, at: &str, rel: &str, kind: ImageKind, w: u32, h: u32) -> std::result::Result<(), String> {
+    fn check_image(
+        &self,
+        at: &str,
+        rel: &str,
+        kind: ImageKind,
+        w: u32,
+        h: u32,
+    ) -> std::result::Result<(), String> {
         let path = self.resolve(rel);
         if !path.is_file() {
             return Err(format!("{at}: missing image {}", path.display()));
@@ -357,7 +403,10 @@ impl Capture {
                 ImageKind::Mask => "8-bit greyscale mask",
                 ImageKind::Depth => "16-bit greyscale depth in millimetres",
             };
-            return Err(format!("{at}: {} must be {want}, found {color:?}", path.display()));
+            return Err(format!(
+                "{at}: {} must be {want}, found {color:?}",
+                path.display()
+            ));
         }
         Ok(())
     }

@@ -17,7 +17,10 @@ pub enum CoreError {
     #[error("{path}: {message}")]
     Image { path: PathBuf, message: String },
     #[error("{path} is not a valid capture:\n{}", format_problems(.problems))]
-    InvalidCapture { path: PathBuf, problems: Vec<String> },
+    InvalidCapture {
+        path: PathBuf,
+        problems: Vec<String>,
+    },
     #[error("{0}")]
     Invalid(String),
 }
@@ -31,7 +34,10 @@ fn format_problems(problems: &[String]) -> String {
         .collect::<Vec<_>>()
         .join("\n");
     if problems.len() > SHOWN {
-        text.push_str(&format!("\n  ... and {} more problems", problems.len() - SHOWN));
+        text.push_str(&format!(
+            "\n  ... and {} more problems",
+            problems.len() - SHOWN
+        ));
     }
     text
 }

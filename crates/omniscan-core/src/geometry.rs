@@ -4,7 +4,9 @@
 //! with determinant +1) so that a bad calibration is caught where it is read,
 //! not as a blurred model hours later.
 
-use nalgebra::{Isometry3, Matrix3, Matrix4, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{
+    Isometry3, Matrix3, Matrix4, Point3, Rotation3, Translation3, UnitQuaternion, Vector3,
+};
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
 /// A rigid transform (rotation + translation in metres).
@@ -21,7 +23,9 @@ pub enum MatrixError {
     NonFinite { row: usize, col: usize },
     #[error("matrix bottom row must be [0, 0, 0, 1], found {0:?}")]
     BottomRow([f64; 4]),
-    #[error("matrix is not rigid: rotation part deviates from orthonormal by {deviation:.3e} (tolerance {RIGIDITY_TOLERANCE:e})")]
+    #[error(
+        "matrix is not rigid: rotation part deviates from orthonormal by {deviation:.3e} (tolerance {RIGIDITY_TOLERANCE:e})"
+    )]
     NotOrthonormal { deviation: f64 },
     #[error("matrix is a reflection, not a rotation (determinant {det:.4})")]
     Reflection { det: f64 },
@@ -37,10 +41,16 @@ pub fn pose_from_rows(m: &[[f64; 4]; 4]) -> Result<Pose, MatrixError> {
         }
     }
     let bottom = m[3];
-    if bottom[0].abs() > 1e-9 || bottom[1].abs() > 1e-9 || bottom[2].abs() > 1e-9 || (bottom[3] - 1.0).abs() > 1e-9 {
+    if bottom[0].abs() > 1e-9
+        || bottom[1].abs() > 1e-9
+        || bottom[2].abs() > 1e-9
+        || (bottom[3] - 1.0).abs() > 1e-9
+    {
         return Err(MatrixError::BottomRow(bottom));
     }
-    let r = Matrix3::new(m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1], m[2][2]);
+    let r = Matrix3::new(
+        m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1], m[2][2],
+    );
     let deviation = (r.transpose() * r - Matrix3::identity()).abs().max();
     if deviation > RIGIDITY_TOLERANCE {
         return Err(MatrixError::NotOrthonormal { deviation });
@@ -52,7 +62,10 @@ pub fn pose_from_rows(m: &[[f64; 4]; 4]) -> Result<Pose, MatrixError> {
     let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(r));
     // Re-orthonormalise so that products of many poses do not drift.
     let rotation = UnitQuaternion::from_rotation_matrix(&rotation.to_rotation_matrix());
-    Ok(Isometry3::from_parts(Translation3::new(m[0][3], m[1][3], m[2][3]), rotation))
+    Ok(Isometry3::from_parts(
+        Translation3::new(m[0][3], m[1][3], m[2][3]),
+        rotation,
+    ))
 }
 
 /// The row-major 4x4 form of a pose.
@@ -94,7 +107,9 @@ impl Serialize for RigidTransform {
 impl<'de> Deserialize<'de> for RigidTransform {
     fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
         let rows = <[[f64; 4]; 4]>::deserialize(d)?;
-        pose_from_rows(&rows).map(RigidTransform).map_err(serde::de::Error::custom)
+        pose_from_rows(&rows)
+            .map(RigidTransform)
+            .map_err(serde::de::Error::custom)
     }
 }
 
@@ -131,8 +146,14 @@ pub fn pose_difference(a: &Pose, b: &Pose) -> (f64, f64) {
 
 /// Builds a rotation from orthonormal column vectors (x, y, z axes of the
 /// rotated frame expressed in the parent frame).
-pub fn rotation_from_axes(x: Vector3<f64>, y: Vector3<f64>, z: Vector3<f64>) -> UnitQuaternion<f64> {
-    UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z])))
+pub fn rotation_from_axes(
+    x: Vector3<f64>,
+    y: Vector3<f64>,
+    z: Vector3<f64>,
+) -> UnitQuaternion<f64> {
+    UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(Matrix3::from_columns(
+        &[x, y, z],
+    )))
 }
 
 #[cfg(test)]
@@ -152,13 +173,22 @@ mod tests {
     fn rejects_bad_matrices() {
         let mut m = pose_to_rows(&Pose::identity());
         m[1][2] = f64::NAN;
-        assert_eq!(pose_from_rows(&m), Err(MatrixError::NonFinite { row: 1, col: 2 }));
+        assert_eq!(
+            pose_from_rows(&m),
+            Err(MatrixError::NonFinite { row: 1, col: 2 })
+        );
         let mut m = pose_to_rows(&Pose::identity());
         m[0][0] = 2.0;
-        assert!(matches!(pose_from_rows(&m), Err(MatrixError::NotOrthonormal { .. })));
+        assert!(matches!(
+            pose_from_rows(&m),
+            Err(MatrixError::NotOrthonormal { .. })
+        ));
         let mut m = pose_to_rows(&Pose::identity());
         m[2][2] = -1.0;
-        assert!(matches!(pose_from_rows(&m), Err(MatrixError::Reflection { .. })));
+        assert!(matches!(
+            pose_from_rows(&m),
+            Err(MatrixError::Reflection { .. })
+        ));
         let mut m = pose_to_rows(&Pose::identity());
         m[3][0] = 0.5;
         assert!(matches!(pose_from_rows(&m), Err(MatrixError::BottomRow(_))));

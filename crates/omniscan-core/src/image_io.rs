@@ -31,7 +31,11 @@ pub struct Mask {
 
 impl Mask {
     pub fn new(width: u32, height: u32) -> Self {
-        Mask { width, height, data: vec![0; (width * height) as usize] }
+        Mask {
+            width,
+            height,
+            data: vec![0; (width * height) as usize],
+        }
     }
     pub fn get(&self, x: u32, y: u32) -> bool {
         self.data[(y * self.width + x) as usize] >= 128
@@ -53,7 +57,7 @@ impl DepthMm {
     /// Depth in metres at a pixel, `None` where there is no measurement.
     pub fn metres(&self, x: u32, y: u32) -> Option<f64> {
         let v = self.data[(y * self.width + x) as usize];
-        (v != 0).then(|| v as f64 * DEPTH_METRES_PER_UNIT)
+        (v != 0).then_some(v as f64 * DEPTH_METRES_PER_UNIT)
     }
 }
 
@@ -83,7 +87,11 @@ fn open(path: &Path) -> Result<image::DynamicImage> {
 /// Reads an RGB image (alpha, if any, is dropped; grey is expanded).
 pub fn read_rgb(path: &Path) -> Result<RgbImage> {
     let img = open(path)?.into_rgb8();
-    Ok(RgbImage { width: img.width(), height: img.height(), data: img.into_raw() })
+    Ok(RgbImage {
+        width: img.width(),
+        height: img.height(),
+        data: img.into_raw(),
+    })
 }
 
 /// Reads an 8-bit single-channel mask; values >= 128 count as in.
@@ -92,11 +100,18 @@ pub fn read_mask(path: &Path) -> Result<Mask> {
     if img.color() != ColorType::L8 {
         return Err(CoreError::image(
             path,
-            format!("a mask must be an 8-bit greyscale PNG, found {:?}", img.color()),
+            format!(
+                "a mask must be an 8-bit greyscale PNG, found {:?}",
+                img.color()
+            ),
         ));
     }
     let img = img.into_luma8();
-    Ok(Mask { width: img.width(), height: img.height(), data: img.into_raw() })
+    Ok(Mask {
+        width: img.width(),
+        height: img.height(),
+        data: img.into_raw(),
+    })
 }
 
 /// Reads a 16-bit depth PNG in millimetres.
@@ -105,16 +120,33 @@ pub fn read_depth(path: &Path) -> Result<DepthMm> {
     if img.color() != ColorType::L16 {
         return Err(CoreError::image(
             path,
-            format!("a depth map must be a 16-bit greyscale PNG in millimetres, found {:?}", img.color()),
+            format!(
+                "a depth map must be a 16-bit greyscale PNG in millimetres, found {:?}",
+                img.color()
+            ),
         ));
     }
     let img = img.into_luma16();
-    Ok(DepthMm { width: img.width(), height: img.height(), data: img.into_raw() })
+    Ok(DepthMm {
+        width: img.width(),
+        height: img.height(),
+        data: img.into_raw(),
+    })
 }
 
-fn write_png(path: &Path, width: u32, height: u32, bytes: &[u8], color: ExtendedColorType) -> Result<()> {
+fn write_png(
+    path: &Path,
+    width: u32,
+    height: u32,
+    bytes: &[u8],
+    color: ExtendedColorType,
+) -> Result<()> {
     crate::io::write_atomic_with(path, |file| {
-        let encoder = PngEncoder::new_with_quality(BufWriter::new(file), CompressionType::Fast, FilterType::Adaptive);
+        let encoder = PngEncoder::new_with_quality(
+            BufWriter::new(file),
+            CompressionType::Fast,
+            FilterType::Adaptive,
+        );
         encoder
             .write_image(bytes, width, height, color)
             .map_err(std::io::Error::other)
@@ -123,19 +155,37 @@ fn write_png(path: &Path, width: u32, height: u32, bytes: &[u8], color: Extended
 
 /// Writes an RGB PNG atomically.
 pub fn write_rgb(path: &Path, image: &RgbImage) -> Result<()> {
-    write_png(path, image.width, image.height, &image.data, ExtendedColorType::Rgb8)
+    write_png(
+        path,
+        image.width,
+        image.height,
+        &image.data,
+        ExtendedColorType::Rgb8,
+    )
 }
 
 /// Writes an 8-bit mask PNG atomically.
 pub fn write_mask(path: &Path, mask: &Mask) -> Result<()> {
-    write_png(path, mask.width, mask.height, &mask.data, ExtendedColorType::L8)
+    write_png(
+        path,
+        mask.width,
+        mask.height,
+        &mask.data,
+        ExtendedColorType::L8,
+    )
 }
 
 /// Writes a 16-bit depth PNG (millimetres) atomically.
 pub fn write_depth(path: &Path, depth: &DepthMm) -> Result<()> {
     // The encoder takes native-endian samples and writes PNG big-endian itself.
     let bytes: Vec<u8> = depth.data.iter().flat_map(|v| v.to_ne_bytes()).collect();
-    write_png(path, depth.width, depth.height, &bytes, ExtendedColorType::L16)
+    write_png(
+        path,
+        depth.width,
+        depth.height,
+        &bytes,
+        ExtendedColorType::L16,
+    )
 }
 
 #[cfg(test)]
@@ -145,23 +195,52 @@ mod tests {
     #[test]
     fn round_trips_and_format_checks() {
         let dir = tempfile::tempdir().unwrap();
-        let rgb = RgbImage { width: 3, height: 2, data: (0..18).collect() };
-        let mask = Mask { width: 3, height: 2, data: vec![0, 255, 0, 255, 255, 0] };
-        let depth = DepthMm { width: 3, height: 2, data: vec![0, 1, 500, 1000, 65535, 300] };
+        let rgb = RgbImage {
+            width: 3,
+            height: 2,
+            data: (0..18).collect(),
+        };
+        let mask = Mask {
+            width: 3,
+            height: 2,
+            data: vec![0, 255, 0, 255, 255, 0],
+        };
+        let depth = DepthMm {
+            width: 3,
+            height: 2,
+            data: vec![0, 1, 500, 1000, 65535, 300],
+        };
         write_rgb(&dir.path().join("a.png"), &rgb).unwrap();
         write_mask(&dir.path().join("m.png"), &mask).unwrap();
         write_depth(&dir.path().join("d.png"), &depth).unwrap();
         assert_eq!(read_rgb(&dir.path().join("a.png")).unwrap(), rgb);
         assert_eq!(read_mask(&dir.path().join("m.png")).unwrap(), mask);
         assert_eq!(read_depth(&dir.path().join("d.png")).unwrap(), depth);
-        assert_eq!(probe(&dir.path().join("d.png")).unwrap(), (3, 2, ColorType::L16));
+        assert_eq!(
+            probe(&dir.path().join("d.png")).unwrap(),
+            (3, 2, ColorType::L16)
+        );
         // Wrong formats are refused with the file named.
-        let err = read_depth(&dir.path().join("m.png")).unwrap_err().to_string();
+        let err = read_depth(&dir.path().join("m.png"))
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("m.png") && err.contains("16-bit"), "{err}");
-        let err = read_mask(&dir.path().join("a.png")).unwrap_err().to_string();
+        let err = read_mask(&dir.path().join("a.png"))
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("8-bit"), "{err}");
         std::fs::write(dir.path().join("bad.png"), b"not a png").unwrap();
-        assert!(read_rgb(&dir.path().join("bad.png")).unwrap_err().to_string().contains("bad.png"));
-        assert!(read_rgb(&dir.path().join("missing.png")).unwrap_err().to_string().contains("missing.png"));
+        assert!(
+            read_rgb(&dir.path().join("bad.png"))
+                .unwrap_err()
+                .to_string()
+                .contains("bad.png")
+        );
+        assert!(
+            read_rgb(&dir.path().join("missing.png"))
+                .unwrap_err()
+                .to_string()
+                .contains("missing.png")
+        );
     }
 }

@@ -13,7 +13,10 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 }
 
 /// Writes to `path` atomically through a caller-provided writer function.
-pub fn write_atomic_with(path: &Path, write: impl FnOnce(&mut std::fs::File) -> std::io::Result<()>) -> Result<()> {
+pub fn write_atomic_with(
+    path: &Path,
+    write: impl FnOnce(&mut std::fs::File) -> std::io::Result<()>,
+) -> Result<()> {
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
@@ -24,14 +27,18 @@ pub fn write_atomic_with(path: &Path, write: impl FnOnce(&mut std::fs::File) -> 
         .tempfile_in(dir)
         .map_err(|e| CoreError::io(dir, e))?;
     write(tmp.as_file_mut()).map_err(|e| CoreError::io(path, e))?;
-    tmp.as_file_mut().flush().map_err(|e| CoreError::io(path, e))?;
-    tmp.persist(path).map_err(|e| CoreError::io(path, e.error))?;
+    tmp.as_file_mut()
+        .flush()
+        .map_err(|e| CoreError::io(path, e))?;
+    tmp.persist(path)
+        .map_err(|e| CoreError::io(path, e.error))?;
     Ok(())
 }
 
 /// Serialises `value` as pretty JSON and writes it atomically.
 pub fn write_json_atomic<T: serde::Serialize>(path: &Path, value: &T) -> Result<()> {
-    let mut text = serde_json::to_string_pretty(value).map_err(|e| CoreError::parse(path, e.to_string()))?;
+    let mut text =
+        serde_json::to_string_pretty(value).map_err(|e| CoreError::parse(path, e.to_string()))?;
     text.push('\n');
     write_atomic(path, text.as_bytes())
 }
@@ -64,7 +71,10 @@ mod tests {
         write_json_atomic(&path, &vec![4]).unwrap();
         let back: Vec<i32> = read_json(&path).unwrap();
         assert_eq!(back, vec![4]);
-        let names: Vec<_> = std::fs::read_dir(path.parent().unwrap()).unwrap().map(|e| e.unwrap().file_name()).collect();
+        let names: Vec<_> = std::fs::read_dir(path.parent().unwrap())
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
         assert_eq!(names.len(), 1, "temporary files left behind: {names:?}");
     }
 
@@ -84,6 +94,9 @@ mod tests {
         let path = dir.path().join("x.json");
         std::fs::write(&path, r#"{"items":[{"a":1},{"a":"no"}]}"#).unwrap();
         let err = read_json::<Outer>(&path).unwrap_err().to_string();
-        assert!(err.contains("x.json") && err.contains("items[1].a"), "{err}");
+        assert!(
+            err.contains("x.json") && err.contains("items[1].a"),
+            "{err}"
+        );
     }
 }

@@ -72,11 +72,18 @@ fn link_or_copy(from: &Path, to: &Path) -> Result<()> {
 }
 
 fn extension(path: &str) -> &str {
-    Path::new(path).extension().and_then(|e| e.to_str()).unwrap_or("png")
+    Path::new(path)
+        .extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("png")
 }
 
 /// Writes `out/transforms.json` with `out/images`, `out/masks` and `out/depth`.
-pub fn export_nerfstudio(capture: &Capture, out: &Path, options: ExportOptions) -> Result<ExportSummary> {
+pub fn export_nerfstudio(
+    capture: &Capture,
+    out: &Path,
+    options: ExportOptions,
+) -> Result<ExportSummary> {
     let views = camera_views(capture, options.views);
     if views.is_empty() {
         return Err(CoreError::Invalid(format!(
@@ -123,7 +130,12 @@ pub fn export_nerfstudio(capture: &Capture, out: &Path, options: ExportOptions) 
                 *v = gl[(r, c)];
             }
         }
-        frames.push(TransformsFrame { file_path: image, transform_matrix: matrix, mask_path, depth_file_path });
+        frames.push(TransformsFrame {
+            file_path: image,
+            transform_matrix: matrix,
+            mask_path,
+            depth_file_path,
+        });
     }
     let file = TransformsFile {
         camera_model: "OPENCV",
@@ -141,5 +153,9 @@ pub fn export_nerfstudio(capture: &Capture, out: &Path, options: ExportOptions) 
     };
     let transforms = out.join("transforms.json");
     crate::io::write_json_atomic(&transforms, &file)?;
-    Ok(ExportSummary { transforms, frames: views.len(), masks: options.masks })
+    Ok(ExportSummary {
+        transforms,
+        frames: views.len(),
+        masks: options.masks,
+    })
 }

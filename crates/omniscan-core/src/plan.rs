@@ -80,7 +80,10 @@ impl ScanPlanConfig {
             return Err("latitude_min must not exceed latitude_max".into());
         }
         if !(self.camera_distance_m.is_finite() && self.camera_distance_m > 0.05) {
-            return Err(format!("camera distance {} m is too small", self.camera_distance_m));
+            return Err(format!(
+                "camera distance {} m is too small",
+                self.camera_distance_m
+            ));
         }
         if !(self.camera_fov_x_rad > 0.05 && self.camera_fov_x_rad < 3.0) {
             return Err("camera field of view must be between 3° and 170°".into());
@@ -109,7 +112,9 @@ impl ScanPlanConfig {
         if self.latitudes <= 1 {
             self.latitude_min_rad
         } else {
-            self.latitude_min_rad + (self.latitude_max_rad - self.latitude_min_rad) * j as f64 / (self.latitudes - 1) as f64
+            self.latitude_min_rad
+                + (self.latitude_max_rad - self.latitude_min_rad) * j as f64
+                    / (self.latitudes - 1) as f64
         }
     }
 
@@ -119,14 +124,14 @@ impl ScanPlanConfig {
     }
 
     /// Unit direction from the scan point to the camera, world frame.
-    fn to_camera(&self) -> Vector3<f64> {
+    fn direction_to_camera(&self) -> Vector3<f64> {
         (self.camera_to_world().translation.vector - self.scan_point().coords).normalize()
     }
 
     /// Direction the arm's approach axis points at latitude 0: across the
     /// view, away from the arm's own side.
     fn side(&self, arm: Arm) -> Vector3<f64> {
-        let u = self.to_camera();
+        let u = self.direction_to_camera();
         let across = match arm {
             Arm::Left => -Vector3::y(),
             Arm::Right => Vector3::y(),
@@ -136,8 +141,14 @@ impl ScanPlanConfig {
 
     /// Gripper pose that shows the camera the held object from `latitude`
     /// and `wrist_angle` (both radians), with the TCP at `tcp`.
-    pub fn gripper_pose(&self, arm: Arm, latitude: f64, wrist_angle: f64, tcp: &Point3<f64>) -> Pose {
-        let u = self.to_camera();
+    pub fn gripper_pose(
+        &self,
+        arm: Arm,
+        latitude: f64,
+        wrist_angle: f64,
+        tcp: &Point3<f64>,
+    ) -> Pose {
+        let u = self.direction_to_camera();
         let s = self.side(arm);
         let (sin_lat, cos_lat) = latitude.sin_cos();
         let z = sin_lat * u + cos_lat * s;
@@ -178,7 +189,10 @@ impl ScanPlanConfig {
         let x = Vector3::z();
         let z = self.side(Arm::Left);
         let y = z.cross(&x);
-        Pose::from_parts(Translation3::from(self.scan_point().coords), rotation_from_axes(x, y, z))
+        Pose::from_parts(
+            Translation3::from(self.scan_point().coords),
+            rotation_from_axes(x, y, z),
+        )
     }
 }
 
@@ -205,13 +219,21 @@ mod tests {
             for p in plan.trajectory(arm) {
                 let pose = p.gripper_to_world.0;
                 // Direction to the camera in the gripper frame.
-                let d = (pose.inverse() * nalgebra::Point3::from(camera)).coords.normalize();
+                let d = (pose.inverse() * nalgebra::Point3::from(camera))
+                    .coords
+                    .normalize();
                 let latitude = d.z.asin();
                 let wrist = d.y.atan2(d.x).rem_euclid(std::f64::consts::TAU);
                 assert!((latitude - p.trajectory.latitude_rad).abs() < 1e-9);
-                let want = p.trajectory.wrist_angle_rad.rem_euclid(std::f64::consts::TAU);
+                let want = p
+                    .trajectory
+                    .wrist_angle_rad
+                    .rem_euclid(std::f64::consts::TAU);
                 let diff = (wrist - want).abs();
-                assert!(diff < 1e-9 || (diff - std::f64::consts::TAU).abs() < 1e-9, "{wrist} vs {want}");
+                assert!(
+                    diff < 1e-9 || (diff - std::f64::consts::TAU).abs() < 1e-9,
+                    "{wrist} vs {want}"
+                );
                 // The approach axis points away from the arm's own side.
                 let z = pose.rotation * Vector3::z();
                 match arm {

@@ -163,13 +163,22 @@ pub fn parse(bytes: &[u8]) -> std::result::Result<PlyFile, String> {
                     other => return Err(format!("unknown PLY format {other:?}")),
                 })
             }
-            "comment" | "obj_info" => comments.push(line.splitn(2, ' ').nth(1).unwrap_or("").to_string()),
+            "comment" | "obj_info" => {
+                comments.push(line.split_once(' ').map(|x| x.1).unwrap_or("").to_string())
+            }
             "element" => {
                 let (Some(name), Some(count)) = (words.get(1), words.get(2)) else {
                     return Err(format!("malformed element line `{line}`"));
                 };
-                let count: usize = count.parse().map_err(|_| format!("bad element count in `{line}`"))?;
-                elements.push(Element { name: name.to_string(), count, properties: vec![], columns: vec![] });
+                let count: usize = count
+                    .parse()
+                    .map_err(|_| format!("bad element count in `{line}`"))?;
+                elements.push(Element {
+                    name: name.to_string(),
+                    count,
+                    properties: vec![],
+                    columns: vec![],
+                });
             }
             "property" => {
                 let element = elements.last_mut().ok_or("property before any element")?;
@@ -177,15 +186,26 @@ pub fn parse(bytes: &[u8]) -> std::result::Result<PlyFile, String> {
                     if words.len() != 5 {
                         return Err(format!("malformed list property `{line}`"));
                     }
-                    let count = ScalarType::parse(words[2]).ok_or_else(|| format!("unknown type in `{line}`"))?;
-                    let scalar = ScalarType::parse(words[3]).ok_or_else(|| format!("unknown type in `{line}`"))?;
-                    Property { name: words[4].to_string(), scalar, list_count: Some(count) }
+                    let count = ScalarType::parse(words[2])
+                        .ok_or_else(|| format!("unknown type in `{line}`"))?;
+                    let scalar = ScalarType::parse(words[3])
+                        .ok_or_else(|| format!("unknown type in `{line}`"))?;
+                    Property {
+                        name: words[4].to_string(),
+                        scalar,
+                        list_count: Some(count),
+                    }
                 } else {
                     if words.len() != 3 {
                         return Err(format!("malformed property `{line}`"));
                     }
-                    let scalar = ScalarType::parse(words[1]).ok_or_else(|| format!("unknown type in `{line}`"))?;
-                    Property { name: words[2].to_string(), scalar, list_count: None }
+                    let scalar = ScalarType::parse(words[1])
+                        .ok_or_else(|| format!("unknown type in `{line}`"))?;
+                    Property {
+                        name: words[2].to_string(),
+                        scalar,
+                        list_count: None,
+                    }
                 };
                 element.properties.push(prop);
             }
@@ -198,7 +218,11 @@ pub fn parse(bytes: &[u8]) -> std::result::Result<PlyFile, String> {
         Format::Ascii => read_ascii(body, &mut elements)?,
         _ => read_binary(body, &mut elements, format == Format::BinaryBigEndian)?,
     }
-    Ok(PlyFile { format, comments, elements })
+    Ok(PlyFile {
+        format,
+        comments,
+        elements,
+    })
 }
 
 fn empty_columns(e: &Element) -> Vec<Column> {
@@ -218,10 +242,14 @@ fn read_ascii(body: &[u8], elements: &mut [Element]) -> std::result::Result<(), 
         let mut columns = empty_columns(e);
         for item in 0..e.count {
             let mut next = |what: &str| -> std::result::Result<f64, String> {
-                let t = tokens
-                    .next()
-                    .ok_or_else(|| format!("file ends early: element `{}` item {item} of {} ({what})", e.name, e.count))?;
-                t.parse::<f64>().map_err(|_| format!("bad number `{t}` in element `{}` item {item}", e.name))
+                let t = tokens.next().ok_or_else(|| {
+                    format!(
+                        "file ends early: element `{}` item {item} of {} ({what})",
+                        e.name, e.count
+                    )
+                })?;
+                t.parse::<f64>()
+                    .map_err(|_| format!("bad number `{t}` in element `{}` item {item}", e.name))
             };
             for (p, col) in e.properties.iter().zip(columns.iter_mut()) {
                 match col {
@@ -229,7 +257,10 @@ fn read_ascii(body: &[u8], elements: &mut [Element]) -> std::result::Result<(), 
                     Column::List(v) => {
                         let n = next(&p.name)?;
                         if !(0.0..=1e6).contains(&n) {
-                            return Err(format!("bad list length {n} in element `{}` item {item}", e.name));
+                            return Err(format!(
+                                "bad list length {n} in element `{}` item {item}",
+                                e.name
+                            ));
                         }
                         let mut list = Vec::with_capacity(n as usize);
                         for _ in 0..n as usize {
@@ -250,7 +281,11 @@ fn read_scalar(bytes: &[u8], t: ScalarType, big: bool) -> f64 {
         ($ty:ty, $n:expr) => {{
             let mut a = [0u8; $n];
             a.copy_from_slice(&bytes[..$n]);
-            if big { <$ty>::from_be_bytes(a) as f64 } else { <$ty>::from_le_bytes(a) as f64 }
+            if big {
+                <$ty>::from_be_bytes(a) as f64
+            } else {
+                <$ty>::from_le_bytes(a) as f64
+            }
         }};
     }
     match t {
@@ -265,7 +300,11 @@ fn read_scalar(bytes: &[u8], t: ScalarType, big: bool) -> f64 {
     }
 }
 
-fn read_binary(body: &[u8], elements: &mut [Element], big: bool) -> std::result::Result<(), String> {
+fn read_binary(
+    body: &[u8],
+    elements: &mut [Element],
+    big: bool,
+) -> std::result::Result<(), String> {
     let mut at = 0usize;
     for e in elements.iter_mut() {
         let mut columns = empty_columns(e);
@@ -291,7 +330,10 @@ fn read_binary(body: &[u8], elements: &mut [Element], big: bool) -> std::result:
                 let mut take = |t: ScalarType| -> std::result::Result<f64, String> {
                     let n = t.size();
                     if at + n > body.len() {
-                        return Err(format!("file is truncated in element `{}` item {item} of {}", e.name, e.count));
+                        return Err(format!(
+                            "file is truncated in element `{}` item {item} of {}",
+                            e.name, e.count
+                        ));
                     }
                     let v = read_scalar(&body[at..], t, big);
                     at += n;
@@ -302,7 +344,10 @@ fn read_binary(body: &[u8], elements: &mut [Element], big: bool) -> std::result:
                     Column::List(v) => {
                         let n = take(p.list_count.unwrap())?;
                         if !(0.0..=1e6).contains(&n) {
-                            return Err(format!("bad list length {n} in element `{}` item {item}", e.name));
+                            return Err(format!(
+                                "bad list length {n} in element `{}` item {item}",
+                                e.name
+                            ));
                         }
                         let mut list = Vec::with_capacity(n as usize);
                         for _ in 0..n as usize {
@@ -329,7 +374,12 @@ pub fn to_binary_le(file: &PlyFile) -> Vec<u8> {
         for p in &e.properties {
             match p.list_count {
                 None => out.push_str(&format!("property {} {}\n", p.scalar.name(), p.name)),
-                Some(c) => out.push_str(&format!("property list {} {} {}\n", c.name(), p.scalar.name(), p.name)),
+                Some(c) => out.push_str(&format!(
+                    "property list {} {} {}\n",
+                    c.name(),
+                    p.scalar.name(),
+                    p.name
+                )),
             }
         }
     }
@@ -378,10 +428,26 @@ mod tests {
                     name: "vertex".into(),
                     count: 3,
                     properties: vec![
-                        Property { name: "x".into(), scalar: ScalarType::F32, list_count: None },
-                        Property { name: "y".into(), scalar: ScalarType::F32, list_count: None },
-                        Property { name: "z".into(), scalar: ScalarType::F64, list_count: None },
-                        Property { name: "red".into(), scalar: ScalarType::U8, list_count: None },
+                        Property {
+                            name: "x".into(),
+                            scalar: ScalarType::F32,
+                            list_count: None,
+                        },
+                        Property {
+                            name: "y".into(),
+                            scalar: ScalarType::F32,
+                            list_count: None,
+                        },
+                        Property {
+                            name: "z".into(),
+                            scalar: ScalarType::F64,
+                            list_count: None,
+                        },
+                        Property {
+                            name: "red".into(),
+                            scalar: ScalarType::U8,
+                            list_count: None,
+                        },
                     ],
                     columns: vec![
                         Column::Scalar(vec![0.0, 1.0, 0.0]),
@@ -418,7 +484,10 @@ mod tests {
         let v = ply.element("vertex").unwrap();
         assert_eq!(v.scalar("x").unwrap(), &[1.0, 4.0]);
         assert_eq!(v.scalar("z").unwrap(), &[3.0, 6.0]);
-        assert_eq!(ply.element("face").unwrap().list("vertex_indices").unwrap()[0], vec![0.0, 1.0, 1.0]);
+        assert_eq!(
+            ply.element("face").unwrap().list("vertex_indices").unwrap()[0],
+            vec![0.0, 1.0, 1.0]
+        );
     }
 
     #[test]
@@ -427,7 +496,10 @@ mod tests {
         for cut in [bytes.len() - 1, bytes.len() - 20, 60] {
             assert!(parse(&bytes[..cut]).is_err(), "cut at {cut} parsed");
         }
-        assert!(parse(b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nend_header\n1\n").is_err());
+        assert!(
+            parse(b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nend_header\n1\n")
+                .is_err()
+        );
         assert!(parse(b"hello").is_err());
         assert!(parse(b"ply\nformat weird 1.0\nend_header\n").is_err());
     }

@@ -47,7 +47,10 @@ impl ViewSet {
     pub fn merged_from_handover(capture: &Capture) -> ViewSet {
         let h = &capture.file.handover;
         ViewSet::Merged {
-            right_to_left: handover_right_to_left(&h.left_gripper_to_world.0, &h.right_gripper_to_world.0),
+            right_to_left: handover_right_to_left(
+                &h.left_gripper_to_world.0,
+                &h.right_gripper_to_world.0,
+            ),
         }
     }
 }
@@ -70,7 +73,11 @@ pub fn camera_views(capture: &Capture, set: ViewSet) -> Vec<CameraView> {
                     Arm::Right => right_to_left * own,
                 },
             };
-            Some(CameraView { frame_index, arm: frame.arm, camera_to_object })
+            Some(CameraView {
+                frame_index,
+                arm: frame.arm,
+                camera_to_object,
+            })
         })
         .collect()
 }
@@ -94,7 +101,10 @@ mod tests {
         // The camera centre (world origin) seen from the gripper: world (0,0,0)
         // is at gripper-frame (0, 1, 0) because the gripper x axis points along world y.
         let centre = t_ic * Point3::origin();
-        assert!((centre - Point3::new(0.0, 1.0, 0.0)).norm() < 1e-12, "{centre}");
+        assert!(
+            (centre - Point3::new(0.0, 1.0, 0.0)).norm() < 1e-12,
+            "{centre}"
+        );
         // A world point projects identically whether through world or object frames.
         let p_world = Point3::new(0.3, -0.2, 2.0);
         let p_object = gripper.inverse() * p_world;

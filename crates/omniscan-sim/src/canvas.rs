@@ -16,7 +16,11 @@ pub struct Canvas {
 
 impl Canvas {
     pub fn new(width: u32, height: u32, color: [f32; 3]) -> Canvas {
-        Canvas { width, height, pixels: vec![color; (width * height) as usize] }
+        Canvas {
+            width,
+            height,
+            pixels: vec![color; (width * height) as usize],
+        }
     }
 
     fn put(&mut self, x: i64, y: i64, color: [f32; 3], alpha: f32) {
@@ -32,7 +36,10 @@ impl Canvas {
     }
 
     fn to_px(&self, u: f32, v: f32) -> (i64, i64) {
-        ((u * self.width as f32) as i64, (v * self.height as f32) as i64)
+        (
+            (u * self.width as f32) as i64,
+            (v * self.height as f32) as i64,
+        )
     }
 
     /// Fills the UV rectangle [u0, u1] x [v0, v1].
@@ -64,8 +71,12 @@ impl Canvas {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let gw = self.width / feature.max(1) + 2;
         let gh = self.height / feature.max(1) + 2;
-        let grid: Vec<f32> = (0..gw * gh).map(|_| rng.random::<f32>() * 2.0 - 1.0).collect();
-        let fine: Vec<f32> = (0..self.width * self.height).map(|_| rng.random::<f32>() * 2.0 - 1.0).collect();
+        let grid: Vec<f32> = (0..gw * gh)
+            .map(|_| rng.random::<f32>() * 2.0 - 1.0)
+            .collect();
+        let fine: Vec<f32> = (0..self.width * self.height)
+            .map(|_| rng.random::<f32>() * 2.0 - 1.0)
+            .collect();
         for y in 0..self.height {
             for x in 0..self.width {
                 let gx = x as f32 / feature as f32;
@@ -86,7 +97,7 @@ impl Canvas {
     }
 
     /// Stripes along u with the given period and duty (UV units).
-    pub fn stripes(&mut self, period: f32, duty: f32, color: [f32; 3], u0: f32, v0: f32, u1: f32, v1: f32) {
+    pub fn stripes(&mut self, period: f32, duty: f32, color: [f32; 3], [u0, v0, u1, v1]: [f32; 4]) {
         let mut u = u0;
         while u < u1 {
             self.rect(u, v0, (u + period * duty).min(u1), v1, color);
@@ -107,9 +118,9 @@ impl Canvas {
             }
             let glyph = glyph(ch);
             let gx = x0 as f32 + i as f32 * 6.0 * cell_w;
-            for row in 0..7 {
+            for (row, bits) in glyph.iter().enumerate() {
                 for col in 0..5 {
-                    if glyph[row] & (1 << (4 - col)) != 0 {
+                    if bits & (1 << (4 - col)) != 0 {
                         let px0 = (gx + col as f32 * cell_w) as i64;
                         let py0 = (y0 as f32 + (6 - row) as f32 * cell_h) as i64;
                         let n = cell_w.ceil().max(1.0) as i64;
@@ -125,7 +136,11 @@ impl Canvas {
     }
 
     pub fn into_texture(self) -> Texture {
-        Texture { width: self.width, height: self.height, texels: self.pixels }
+        Texture {
+            width: self.width,
+            height: self.height,
+            texels: self.pixels,
+        }
     }
 }
 

@@ -47,10 +47,13 @@ pub struct DefectSpec {
 impl FromStr for DefectSpec {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
-        let usage = "expected geometric:dent|bump|cut[,size_mm=S] or visual:scratch|tape[,size_mm=S]";
+        let usage =
+            "expected geometric:dent|bump|cut[,size_mm=S] or visual:scratch|tape[,size_mm=S]";
         let mut parts = s.split(',');
         let head = parts.next().unwrap_or("");
-        let (category, kind) = head.split_once(':').ok_or_else(|| format!("bad defect `{s}`: {usage}"))?;
+        let (category, kind) = head
+            .split_once(':')
+            .ok_or_else(|| format!("bad defect `{s}`: {usage}"))?;
         let kind = match (category, kind) {
             ("geometric", "dent") => DefectKind::Dent,
             ("geometric", "bump") => DefectKind::Bump,
@@ -63,7 +66,9 @@ impl FromStr for DefectSpec {
         for p in parts {
             match p.split_once('=') {
                 Some(("size_mm", v)) => {
-                    size_mm = v.parse().map_err(|_| format!("bad size_mm `{v}` in defect `{s}`"))?;
+                    size_mm = v
+                        .parse()
+                        .map_err(|_| format!("bad size_mm `{v}` in defect `{s}`"))?;
                 }
                 _ => return Err(format!("unknown defect option `{p}`: {usage}")),
             }
@@ -101,15 +106,27 @@ pub fn plant_defect(
     avoid_radius: f64,
 ) -> Result<(DefectRecord, Vec<Decal>), SimError> {
     let size = spec.size_mm * 1e-3;
-    let (center, normal, uv_color) = pick_place(mesh, seed, avoid, avoid_radius, size)?;
+    let Place {
+        point: center,
+        normal,
+        color: uv_color,
+    } = pick_place(mesh, seed, avoid, avoid_radius, size)?;
     let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0xdef);
-    let helper = if normal.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
+    let helper = if normal.x.abs() < 0.9 {
+        Vector3::x()
+    } else {
+        Vector3::y()
+    };
     let t0 = normal.cross(&helper).normalize();
     let t1 = normal.cross(&t0);
     let angle: f64 = rng.random::<f64>() * std::f64::consts::PI;
     let tangent = t0 * angle.cos() + t1 * angle.sin();
     let mut record = DefectRecord {
-        category: if spec.kind.is_geometric() { "geometric" } else { "visual" },
+        category: if spec.kind.is_geometric() {
+            "geometric"
+        } else {
+            "visual"
+        },
         kind: spec.kind,
         size_mm: spec.size_mm,
         center_m: center.coords.into(),
@@ -122,7 +139,12 @@ pub fn plant_defect(
     let mut decals = Vec::new();
     match spec.kind {
         DefectKind::Dent | DefectKind::Bump | DefectKind::Cut => {
-            refine_near(mesh, &center.cast(), (size * 1.2) as f32, (size / 8.0) as f32);
+            refine_near(
+                mesh,
+                &center.cast(),
+                (size * 1.2) as f32,
+                (size / 8.0) as f32,
+            );
             let depth = match spec.kind {
                 DefectKind::Cut => 0.4 * size,
                 _ => 0.35 * size,
@@ -142,11 +164,19 @@ pub fn plant_defect(
                 }
                 let offset = match spec.kind {
                     DefectKind::Cut => {
-                        if height > -depth { -(height + depth) } else { 0.0 }
+                        if height > -depth {
+                            -(height + depth)
+                        } else {
+                            0.0
+                        }
                     }
                     kind => {
                         let f = (1.0 - (lateral / r).powi(2)).powi(2);
-                        if kind == DefectKind::Dent { -depth * f } else { depth * f }
+                        if kind == DefectKind::Dent {
+                            -depth * f
+                        } else {
+                            depth * f
+                        }
                     }
                 };
                 if offset != 0.0 {
@@ -155,7 +185,10 @@ pub fn plant_defect(
                 }
             }
             if moved == 0 {
-                return Err(SimError::Invalid(format!("the {:?} defect moved no vertex: the mesh is too coarse there", spec.kind)));
+                return Err(SimError::Invalid(format!(
+                    "the {:?} defect moved no vertex: the mesh is too coarse there",
+                    spec.kind
+                )));
             }
             record.moved_vertices = moved;
             mesh.compute_normals();
@@ -163,10 +196,18 @@ pub fn plant_defect(
         DefectKind::Scratch | DefectKind::Tape => {
             let brightness = (uv_color[0] + uv_color[1] + uv_color[2]) / 3.0;
             let (half_width, wiggle, color, specular) = if spec.kind == DefectKind::Scratch {
-                let color = if brightness < 0.5 { [0.86, 0.86, 0.84] } else { [0.18, 0.17, 0.16] };
+                let color = if brightness < 0.5 {
+                    [0.86, 0.86, 0.84]
+                } else {
+                    [0.18, 0.17, 0.16]
+                };
                 ((0.00025f64).max(size * 0.04), size * 0.04, color, 0.6)
             } else {
-                let color = if uv_color[2] < 0.3 && uv_color[0] > 0.6 { [0.15, 0.45, 0.9] } else { [0.96, 0.82, 0.10] };
+                let color = if uv_color[2] < 0.3 && uv_color[0] > 0.6 {
+                    [0.15, 0.45, 0.9]
+                } else {
+                    [0.96, 0.82, 0.10]
+                };
                 (size * 0.2, 0.0, color, 0.3)
             };
             decals.push(Decal {
@@ -185,14 +226,21 @@ pub fn plant_defect(
     Ok((record, decals))
 }
 
-/// A seeded surface point (and its outward normal and colour) away from `avoid`.
+/// Where a defect goes: a surface point, its outward normal and the surface colour there.
+struct Place {
+    point: Point3<f64>,
+    normal: Vector3<f64>,
+    color: [f32; 3],
+}
+
+/// A seeded surface point away from `avoid`, flat over the defect's size.
 fn pick_place(
     mesh: &Mesh,
     seed: u64,
     avoid: &[Point3<f64>],
     avoid_radius: f64,
     size: f64,
-) -> Result<(Point3<f64>, Vector3<f64>, [f32; 3]), SimError> {
+) -> Result<Place, SimError> {
     let areas: Vec<f64> = (0..mesh.triangles.len())
         .map(|t| {
             let [a, b, c] = mesh.triangle(t).map(|p| p.cast::<f64>());
@@ -231,17 +279,23 @@ fn pick_place(
             continue;
         }
         let [ia, ib, ic] = mesh.triangles[t].map(|i| i as usize);
-        let material = &mesh.materials[mesh.triangle_materials.get(t).copied().unwrap_or(0) as usize];
+        let material =
+            &mesh.materials[mesh.triangle_materials.get(t).copied().unwrap_or(0) as usize];
         let mut color = material.albedo;
         if let Some(tex) = &material.texture
             && !mesh.uvs.is_empty()
         {
             let w = [1.0 - u - v, u, v].map(|x| x as f32);
-            let uv = [0, 1].map(|k| w[0] * mesh.uvs[ia][k] + w[1] * mesh.uvs[ib][k] + w[2] * mesh.uvs[ic][k]);
+            let uv = [0, 1]
+                .map(|k| w[0] * mesh.uvs[ia][k] + w[1] * mesh.uvs[ib][k] + w[2] * mesh.uvs[ic][k]);
             let s = tex.sample(uv[0], uv[1]);
             color = [color[0] * s[0], color[1] * s[1], color[2] * s[2]];
         }
-        return Ok((p, n, color));
+        return Ok(Place {
+            point: p,
+            normal: n,
+            color,
+        });
     }
     Err(SimError::Invalid("found no place for the defect: every sampled point is near the fingers or on a sharp feature".into()))
 }
@@ -255,7 +309,9 @@ pub fn refine_near(mesh: &mut Mesh, center: &Point3<f32>, radius: f32, max_edge:
             .iter()
             .map(|p| {
                 let n = weld.len() as u32;
-                *weld.entry([p.x.to_bits(), p.y.to_bits(), p.z.to_bits()]).or_insert(n)
+                *weld
+                    .entry([p.x.to_bits(), p.y.to_bits(), p.z.to_bits()])
+                    .or_insert(n)
             })
             .collect();
         let key = |a: u32, b: u32| {
@@ -285,9 +341,15 @@ pub fn refine_near(mesh: &mut Mesh, center: &Point3<f32>, radius: f32, max_edge:
                 return m;
             }
             let (ia, ib) = (a as usize, b as usize);
-            mesh.positions.push(Point3::from((mesh.positions[ia].coords + mesh.positions[ib].coords) * 0.5));
+            mesh.positions.push(Point3::from(
+                (mesh.positions[ia].coords + mesh.positions[ib].coords) * 0.5,
+            ));
             let n = mesh.normals[ia] + mesh.normals[ib];
-            mesh.normals.push(if n.norm() > 0.0 { n.normalize() } else { mesh.normals[ia] });
+            mesh.normals.push(if n.norm() > 0.0 {
+                n.normalize()
+            } else {
+                mesh.normals[ia]
+            });
             if !mesh.uvs.is_empty() {
                 let (u, v) = (mesh.uvs[ia], mesh.uvs[ib]);
                 mesh.uvs.push([(u[0] + v[0]) * 0.5, (u[1] + v[1]) * 0.5]);
@@ -344,7 +406,11 @@ mod tests {
 
     fn cube() -> Mesh {
         let mut b = MeshBuilder::new(Material::color([0.3; 3]));
-        b.cuboid(Point3::new(-0.02, -0.02, -0.02), Point3::new(0.02, 0.02, 0.02), 0);
+        b.cuboid(
+            Point3::new(-0.02, -0.02, -0.02),
+            Point3::new(0.02, 0.02, 0.02),
+            0,
+        );
         let mut m = b.finish();
         m.compute_normals();
         m
@@ -353,9 +419,24 @@ mod tests {
     #[test]
     fn parses_specs() {
         let s: DefectSpec = "geometric:dent,size_mm=7.5".parse().unwrap();
-        assert_eq!(s, DefectSpec { kind: DefectKind::Dent, size_mm: 7.5 });
-        assert_eq!("visual:tape".parse::<DefectSpec>().unwrap().kind, DefectKind::Tape);
-        for bad in ["geometric:crack", "dent", "visual:tape,size=3", "visual:tape,size_mm=-1", "visual:tape,size_mm=x"] {
+        assert_eq!(
+            s,
+            DefectSpec {
+                kind: DefectKind::Dent,
+                size_mm: 7.5
+            }
+        );
+        assert_eq!(
+            "visual:tape".parse::<DefectSpec>().unwrap().kind,
+            DefectKind::Tape
+        );
+        for bad in [
+            "geometric:crack",
+            "dent",
+            "visual:tape,size=3",
+            "visual:tape,size_mm=-1",
+            "visual:tape,size_mm=x",
+        ] {
             assert!(bad.parse::<DefectSpec>().is_err(), "{bad}");
         }
     }
@@ -371,7 +452,10 @@ mod tests {
         let bits = |p: &Point3<f32>| [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()];
         for t in &m.triangles {
             for k in 0..3 {
-                let (a, b) = (bits(&m.positions[t[k] as usize]), bits(&m.positions[t[(k + 1) % 3] as usize]));
+                let (a, b) = (
+                    bits(&m.positions[t[k] as usize]),
+                    bits(&m.positions[t[(k + 1) % 3] as usize]),
+                );
                 *edges.entry((a.min(b), a.max(b))).or_default() += 1;
             }
         }
@@ -382,7 +466,10 @@ mod tests {
     #[test]
     fn dent_moves_the_surface_by_its_depth_at_the_centre() {
         let mut m = cube();
-        let spec = DefectSpec { kind: DefectKind::Dent, size_mm: 8.0 };
+        let spec = DefectSpec {
+            kind: DefectKind::Dent,
+            size_mm: 8.0,
+        };
         let (record, decals) = plant_defect(&mut m, &spec, 5, &[], 0.0).unwrap();
         assert!(decals.is_empty() && record.moved_vertices > 0);
         let c = Point3::from(record.center_m);
@@ -390,19 +477,29 @@ mod tests {
         // Along the normal through the centre, the surface is now depth_mm deeper.
         let hits = m.line_hits(&(c + n * 0.01), &-n);
         let first = hits.first().unwrap().0 - 0.01;
-        assert!((first - record.depth_mm * 1e-3).abs() < 1e-4, "{first} vs {}", record.depth_mm);
+        assert!(
+            (first - record.depth_mm * 1e-3).abs() < 1e-4,
+            "{first} vs {}",
+            record.depth_mm
+        );
     }
 
     #[test]
     fn visual_defect_is_a_decal_and_leaves_geometry_alone() {
         let mut m = cube();
         let before = m.clone();
-        let spec = DefectSpec { kind: DefectKind::Tape, size_mm: 10.0 };
+        let spec = DefectSpec {
+            kind: DefectKind::Tape,
+            size_mm: 10.0,
+        };
         let (record, decals) = plant_defect(&mut m, &spec, 9, &[], 0.0).unwrap();
         assert_eq!(m, before);
         assert_eq!(decals.len(), 1);
         let c = Point3::from(record.center_m).cast::<f32>();
         assert!(decals[0].covers(&c, &Vector3::from(record.normal).cast()));
-        assert!(!decals[0].covers(&(c + decals[0].tangent * 0.02), &Vector3::from(record.normal).cast()));
+        assert!(!decals[0].covers(
+            &(c + decals[0].tangent * 0.02),
+            &Vector3::from(record.normal).cast()
+        ));
     }
 }

@@ -18,7 +18,9 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::SimError;
-use crate::gripper::{FINGER_LENGTH_M, FINGER_MOUNT_M, FINGER_WIDTH_M, TCP_FROM_BASE_M, gripper_boxes};
+use crate::gripper::{
+    FINGER_LENGTH_M, FINGER_MOUNT_M, FINGER_WIDTH_M, TCP_FROM_BASE_M, gripper_boxes,
+};
 use crate::mesh::Mesh;
 use omniscan_core::Pose;
 
@@ -47,7 +49,9 @@ impl Grasp {
         let x = Vector3::from(self.axis);
         let z = Vector3::from(self.approach);
         let y = z.cross(&x);
-        let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z])));
+        let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(
+            Matrix3::from_columns(&[x, y, z]),
+        ));
         let tcp = Vector3::from(self.center) - z * self.depth_m;
         let gripper_to_object = Pose::from_parts(nalgebra::Translation3::from(tcp), rotation);
         gripper_to_object.inverse()
@@ -76,7 +80,11 @@ struct Candidate {
 /// Vertices of `mesh` (subsampled), in the object frame.
 fn sample_vertices(mesh: &Mesh, max: usize) -> Vec<Point3<f64>> {
     let step = (mesh.positions.len() / max).max(1);
-    mesh.positions.iter().step_by(step).map(|p| p.cast::<f64>()).collect()
+    mesh.positions
+        .iter()
+        .step_by(step)
+        .map(|p| p.cast::<f64>())
+        .collect()
 }
 
 fn inside(p: &Point3<f64>, (lo, hi): &(Point3<f64>, Point3<f64>)) -> bool {
@@ -93,7 +101,11 @@ fn box_surface_points(boxes: &[(Point3<f64>, Point3<f64>)], per_axis: usize) -> 
                     let on_face = [i, j, k].iter().any(|&v| v == 0 || v == per_axis);
                     if on_face {
                         let f = |a: f64, b: f64, s: usize| a + (b - a) * s as f64 / per_axis as f64;
-                        out.push(Point3::new(f(lo.x, hi.x, i), f(lo.y, hi.y, j), f(lo.z, hi.z, k)));
+                        out.push(Point3::new(
+                            f(lo.x, hi.x, i),
+                            f(lo.y, hi.y, j),
+                            f(lo.z, hi.z, k),
+                        ));
                     }
                 }
             }
@@ -104,7 +116,11 @@ fn box_surface_points(boxes: &[(Point3<f64>, Point3<f64>)], per_axis: usize) -> 
 
 /// Perpendicular unit vectors to `axis`.
 fn basis(axis: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
-    let helper = if axis.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
+    let helper = if axis.x.abs() < 0.9 {
+        Vector3::x()
+    } else {
+        Vector3::y()
+    };
     let e1 = axis.cross(&helper).normalize();
     let e2 = axis.cross(&e1);
     (e1, e2)
@@ -164,7 +180,13 @@ fn candidates(mesh: &Mesh, settings: &GraspSettings) -> Vec<Candidate> {
             let to_centroid = centroid - center;
             let torque_arm = (to_centroid - axis * to_centroid.dot(&axis)).norm();
             let quality = 0.5 * (d1 + d2) - 1.5 * torque_arm / radius;
-            Some(Candidate { center, axis, width, contacts, quality })
+            Some(Candidate {
+                center,
+                axis,
+                width,
+                contacts,
+                quality,
+            })
         })
         .collect();
     found.sort_by(|a, b| b.quality.total_cmp(&a.quality));
@@ -191,13 +213,24 @@ fn pad_points(opening: f64) -> Vec<Point3<f64>> {
 /// from mid-pad towards the fingertips; returns the grasp at the smallest
 /// depth that keeps the object and `obstacles` (object-frame points that must
 /// stay outside the gripper) clear, preferring clearance from the palm.
-fn with_approach(c: &Candidate, vertices: &[Point3<f64>], obstacles: &[Point3<f64>]) -> Option<Grasp> {
-    GRASP_DEPTHS_M.into_iter().find_map(|depth| with_approach_at_depth(c, depth, vertices, obstacles))
+fn with_approach(
+    c: &Candidate,
+    vertices: &[Point3<f64>],
+    obstacles: &[Point3<f64>],
+) -> Option<Grasp> {
+    GRASP_DEPTHS_M
+        .into_iter()
+        .find_map(|depth| with_approach_at_depth(c, depth, vertices, obstacles))
 }
 
 const GRASP_DEPTHS_M: [f64; 3] = [0.0, 0.01, 0.018];
 
-fn with_approach_at_depth(c: &Candidate, depth_m: f64, vertices: &[Point3<f64>], obstacles: &[Point3<f64>]) -> Option<Grasp> {
+fn with_approach_at_depth(
+    c: &Candidate,
+    depth_m: f64,
+    vertices: &[Point3<f64>],
+    obstacles: &[Point3<f64>],
+) -> Option<Grasp> {
     let (e1, e2) = basis(&c.axis);
     // Fingers need 1.5 mm of slack beyond the contacts before a vertex counts as a collision.
     let boxes = gripper_boxes(c.width + 0.003);
@@ -228,7 +261,11 @@ fn with_approach_at_depth(c: &Candidate, depth_m: f64, vertices: &[Point3<f64>],
                 clearance = clearance.min(p.z - z_mount);
             }
         }
-        if collides || obstacles.iter().any(|o| boxes.iter().any(|b| inside(&(to_gripper * o), b))) {
+        if collides
+            || obstacles
+                .iter()
+                .any(|o| boxes.iter().any(|b| inside(&(to_gripper * o), b)))
+        {
             continue;
         }
         if best.as_ref().is_none_or(|(c, _)| clearance > *c) {
@@ -245,7 +282,8 @@ fn left_grasps(mesh: &Mesh, settings: &GraspSettings) -> Vec<Grasp> {
     let mut out: Vec<Grasp> = Vec::new();
     for c in found.iter().take(200) {
         let duplicate = out.iter().any(|g| {
-            (Point3::from(g.center) - c.center).norm() < 0.004 && Vector3::from(g.axis).dot(&c.axis).abs() > 0.95
+            (Point3::from(g.center) - c.center).norm() < 0.004
+                && Vector3::from(g.axis).dot(&c.axis).abs() > 0.95
         });
         if duplicate {
             continue;
@@ -262,7 +300,10 @@ fn left_grasps(mesh: &Mesh, settings: &GraspSettings) -> Vec<Grasp> {
 
 /// The left arm's grasp: the best collision-free candidate.
 pub fn plan_left_grasp(mesh: &Mesh, settings: &GraspSettings) -> Result<Grasp, SimError> {
-    left_grasps(mesh, settings).into_iter().next().ok_or_else(|| no_grasp(settings))
+    left_grasps(mesh, settings)
+        .into_iter()
+        .next()
+        .ok_or_else(|| no_grasp(settings))
 }
 
 /// The grasps of both arms: the best left grasp for which a handover regrasp
@@ -296,16 +337,32 @@ fn no_grasp(settings: &GraspSettings) -> SimError {
 
 /// The right arm's regrasp at handover: pads away from the left pads, no
 /// collision with the left gripper, preferring a different closing axis.
-pub fn plan_right_grasp(mesh: &Mesh, left: &Grasp, settings: &GraspSettings) -> Result<Grasp, SimError> {
+pub fn plan_right_grasp(
+    mesh: &Mesh,
+    left: &Grasp,
+    settings: &GraspSettings,
+) -> Result<Grasp, SimError> {
     let vertices = sample_vertices(mesh, 3000);
     let left_to_object = left.object_to_gripper().inverse();
-    let left_gripper: Vec<Point3<f64>> = box_surface_points(&gripper_boxes(left.width_m), 6).iter().map(|p| left_to_object * p).collect();
-    let left_pads: Vec<Point3<f64>> = pad_points(left.width_m).iter().map(|p| left_to_object * p).collect();
+    let left_gripper: Vec<Point3<f64>> = box_surface_points(&gripper_boxes(left.width_m), 6)
+        .iter()
+        .map(|p| left_to_object * p)
+        .collect();
+    let left_pads: Vec<Point3<f64>> = pad_points(left.width_m)
+        .iter()
+        .map(|p| left_to_object * p)
+        .collect();
     let left_axis = Vector3::from(left.axis);
-    let settings = GraspSettings { seed: settings.seed ^ 0x5eed, ..*settings };
+    let settings = GraspSettings {
+        seed: settings.seed ^ 0x5eed,
+        ..*settings
+    };
     let found = candidates(mesh, &settings);
     let separation = |g: &Grasp| -> f64 {
-        let pads: Vec<Point3<f64>> = pad_points(g.width_m).iter().map(|p| g.object_to_gripper().inverse() * p).collect();
+        let pads: Vec<Point3<f64>> = pad_points(g.width_m)
+            .iter()
+            .map(|p| g.object_to_gripper().inverse() * p)
+            .collect();
         pads.iter()
             .flat_map(|a| left_pads.iter().map(move |b| (a - b).norm()))
             .fold(f64::INFINITY, f64::min)
@@ -313,11 +370,18 @@ pub fn plan_right_grasp(mesh: &Mesh, left: &Grasp, settings: &GraspSettings) -> 
     let scored: Vec<(f64, Grasp)> = found
         .par_iter()
         .take(400)
-        .flat_map_iter(|c| GRASP_DEPTHS_M.into_iter().filter_map(|depth| with_approach_at_depth(c, depth, &vertices, &left_gripper)))
+        .flat_map_iter(|c| {
+            GRASP_DEPTHS_M
+                .into_iter()
+                .filter_map(|depth| with_approach_at_depth(c, depth, &vertices, &left_gripper))
+        })
         .filter_map(|g| {
             let sep = separation(&g);
             (sep >= 0.004).then(|| {
-                let score = g.quality + (sep.min(0.03) / 0.03) + 0.5 * (1.0 - Vector3::from(g.axis).dot(&left_axis).abs()) - 10.0 * g.depth_m;
+                let score = g.quality
+                    + (sep.min(0.03) / 0.03)
+                    + 0.5 * (1.0 - Vector3::from(g.axis).dot(&left_axis).abs())
+                    - 10.0 * g.depth_m;
                 (score, g)
             })
         })
@@ -341,21 +405,35 @@ mod tests {
     fn bar() -> Mesh {
         // 80 x 20 x 30 mm bar: the only graspable widths are 20 and 30 mm.
         let mut b = MeshBuilder::new(Material::color([0.5; 3]));
-        b.cuboid(Point3::new(-0.04, -0.01, -0.015), Point3::new(0.04, 0.01, 0.015), 0);
+        b.cuboid(
+            Point3::new(-0.04, -0.01, -0.015),
+            Point3::new(0.04, 0.01, 0.015),
+            0,
+        );
         let mut m = b.finish();
         m.compute_normals();
         m
     }
 
     fn settings() -> GraspSettings {
-        GraspSettings { candidates: 400, friction_cone_rad: 0.35, min_width_m: 0.002, max_width_m: 0.046, seed: 3 }
+        GraspSettings {
+            candidates: 400,
+            friction_cone_rad: 0.35,
+            min_width_m: 0.002,
+            max_width_m: 0.046,
+            seed: 3,
+        }
     }
 
     #[test]
     fn left_grasp_is_antipodal_across_a_narrow_side_and_clear_of_the_gripper() {
         let mesh = bar();
         let g = plan_left_grasp(&mesh, &settings()).unwrap();
-        assert!((g.width_m - 0.02).abs() < 1e-9 || (g.width_m - 0.03).abs() < 1e-9, "{}", g.width_m);
+        assert!(
+            (g.width_m - 0.02).abs() < 1e-9 || (g.width_m - 0.03).abs() < 1e-9,
+            "{}",
+            g.width_m
+        );
         let axis = Vector3::from(g.axis);
         assert!(axis.x.abs() < 1e-9, "never across the 80 mm length: {axis}");
         // Contacts lie on the surface, on the axis, and the TCP between them.
@@ -371,7 +449,11 @@ mod tests {
         // No vertex inside the palm or fingers.
         for v in &mesh.positions {
             let p = to_gripper * v.cast::<f64>();
-            assert!(!gripper_boxes(g.width_m + 0.003).iter().any(|b| inside(&p, b)));
+            assert!(
+                !gripper_boxes(g.width_m + 0.003)
+                    .iter()
+                    .any(|b| inside(&p, b))
+            );
         }
     }
 
@@ -382,7 +464,10 @@ mod tests {
         let right = plan_right_grasp(&mesh, &left, &settings()).unwrap();
         let l = Point3::from(left.center);
         let r = Point3::from(right.center);
-        assert!((l - r).norm() > 0.01, "right grasp {r} too close to left {l}");
+        assert!(
+            (l - r).norm() > 0.01,
+            "right grasp {r} too close to left {l}"
+        );
         // Approaches do not point at each other's gripper: the right palm is not on the left palm's side.
         assert!(Vector3::from(left.approach).dot(&Vector3::from(right.approach)) < 0.9);
     }

@@ -55,7 +55,10 @@ impl GripperModel {
         let load = |name: &str, color: [f32; 3], specular: f32| -> Result<Mesh, SimError> {
             let path = dir.join("meshes").join(name);
             if !path.exists() {
-                return Err(SimError::mesh(&path, "missing: --gripper-dir must hold meshes/finray_finger.stl, gripper_base.stl and link_7.stl"));
+                return Err(SimError::mesh(
+                    &path,
+                    "missing: --gripper-dir must hold meshes/finray_finger.stl, gripper_base.stl and link_7.stl",
+                ));
             }
             let mut mesh = crate::loaders::load_mesh(&path)?;
             mesh.materials = vec![Material::color(color).with_specular(specular, 20.0)];
@@ -75,32 +78,77 @@ impl GripperModel {
         let grey = Material::color([0.82, 0.82, 0.80]).with_specular(0.2, 20.0);
         let mut base = MeshBuilder::new(grey);
         let dark = base.add_material(Material::color([0.25, 0.25, 0.27]));
-        base.cuboid(Point3::new(-0.0416, -0.0345, 0.0), Point3::new(0.0416, 0.0345, 0.0931), 0);
+        base.cuboid(
+            Point3::new(-0.0416, -0.0345, 0.0),
+            Point3::new(0.0416, 0.0345, 0.0931),
+            0,
+        );
         // Finger rails and a cable boss give the body some structure.
-        base.cuboid(Point3::new(-0.030, -0.0125, 0.0931), Point3::new(0.030, 0.0125, 0.0960), dark);
-        base.cuboid(Point3::new(-0.012, 0.0345, 0.02), Point3::new(0.012, 0.040, 0.05), dark);
+        base.cuboid(
+            Point3::new(-0.030, -0.0125, 0.0931),
+            Point3::new(0.030, 0.0125, 0.0960),
+            dark,
+        );
+        base.cuboid(
+            Point3::new(-0.012, 0.0345, 0.02),
+            Point3::new(0.012, 0.040, 0.05),
+            dark,
+        );
         let mut base = base.finish();
         base.compute_normals();
 
-        let mut finger = MeshBuilder::new(Material::color([0.16, 0.16, 0.17]).with_specular(0.1, 20.0));
+        let mut finger =
+            MeshBuilder::new(Material::color([0.16, 0.16, 0.17]).with_specular(0.1, 20.0));
         let (y0, y1) = (-0.006f32, 0.019f32);
         // Mounting block.
-        finger.cuboid(Point3::new(-0.005, y0, 0.0), Point3::new(0.0245, y1, 0.008), 0);
+        finger.cuboid(
+            Point3::new(-0.005, y0, 0.0),
+            Point3::new(0.0245, y1, 0.008),
+            0,
+        );
         // Fin-ray: inner contact beam, slanted outer beam, ribs between them.
-        beam(&mut finger, [0.0007 - 0.0025, 0.008], [0.0007 - 0.0025, 0.0595], 0.0025, y0, y1);
-        beam(&mut finger, [-0.022, 0.008], [-0.003, 0.0595], 0.002, y0, y1);
+        beam(
+            &mut finger,
+            [0.0007 - 0.0025, 0.008],
+            [0.0007 - 0.0025, 0.0595],
+            0.0025,
+            y0,
+            y1,
+        );
+        beam(
+            &mut finger,
+            [-0.022, 0.008],
+            [-0.003, 0.0595],
+            0.002,
+            y0,
+            y1,
+        );
         for z in [0.018f32, 0.028, 0.038, 0.048] {
             let outer_x = -0.022 + (0.019) * (z - 0.008) / 0.0515;
-            beam(&mut finger, [outer_x, z - 0.003], [-0.0018, z], 0.0015, y0, y1);
+            beam(
+                &mut finger,
+                [outer_x, z - 0.003],
+                [-0.0018, z],
+                0.0015,
+                y0,
+                y1,
+            );
         }
         let mut finger = finger.finish();
         finger.compute_normals();
 
-        let mut wrist = MeshBuilder::new(Material::color([0.62, 0.62, 0.62]).with_specular(0.25, 24.0));
+        let mut wrist =
+            MeshBuilder::new(Material::color([0.62, 0.62, 0.62]).with_specular(0.25, 24.0));
         cylinder(&mut wrist, 0.0315, -0.031, 0.0125, 48, 0);
         let mut wrist = wrist.finish();
         wrist.compute_normals();
-        GripperModel { base, finger, wrist, forearm: forearm_mesh(), source: "builtin".into() }
+        GripperModel {
+            base,
+            finger,
+            wrist,
+            forearm: forearm_mesh(),
+            source: "builtin".into(),
+        }
     }
 
     /// Where each part sits, relative to the TCP, for a given pad opening (metres).
@@ -109,16 +157,42 @@ impl GripperModel {
         let tcp_to_base = Isometry3::translation(0.0, 0.0, -TCP_FROM_BASE_M);
         let half_turn = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), std::f64::consts::PI);
         // finger_r: no rotation, pad facing +x, slides towards -x as it opens.
-        let finger_r = Isometry3::from_parts(Translation3::new(-q - PAD_OFFSET_M, -0.0065, FINGER_MOUNT_M), UnitQuaternion::identity());
+        let finger_r = Isometry3::from_parts(
+            Translation3::new(-q - PAD_OFFSET_M, -0.0065, FINGER_MOUNT_M),
+            UnitQuaternion::identity(),
+        );
         // finger_l: turned half about z, pad facing -x.
-        let finger_l = Isometry3::from_parts(Translation3::new(q + PAD_OFFSET_M, 0.0065, FINGER_MOUNT_M), half_turn);
+        let finger_l = Isometry3::from_parts(
+            Translation3::new(q + PAD_OFFSET_M, 0.0065, FINGER_MOUNT_M),
+            half_turn,
+        );
         let wrist = Isometry3::from_parts(Translation3::new(0.0, 0.0, -0.007), half_turn);
         vec![
-            PlacedPart { mesh: &self.base, tcp_to_part: tcp_to_base, is_arm: false },
-            PlacedPart { mesh: &self.finger, tcp_to_part: tcp_to_base * finger_r, is_arm: false },
-            PlacedPart { mesh: &self.finger, tcp_to_part: tcp_to_base * finger_l, is_arm: false },
-            PlacedPart { mesh: &self.wrist, tcp_to_part: tcp_to_base * wrist, is_arm: false },
-            PlacedPart { mesh: &self.forearm, tcp_to_part: tcp_to_base * Isometry3::translation(0.0, 0.0, -0.038), is_arm: true },
+            PlacedPart {
+                mesh: &self.base,
+                tcp_to_part: tcp_to_base,
+                is_arm: false,
+            },
+            PlacedPart {
+                mesh: &self.finger,
+                tcp_to_part: tcp_to_base * finger_r,
+                is_arm: false,
+            },
+            PlacedPart {
+                mesh: &self.finger,
+                tcp_to_part: tcp_to_base * finger_l,
+                is_arm: false,
+            },
+            PlacedPart {
+                mesh: &self.wrist,
+                tcp_to_part: tcp_to_base * wrist,
+                is_arm: false,
+            },
+            PlacedPart {
+                mesh: &self.forearm,
+                tcp_to_part: tcp_to_base * Isometry3::translation(0.0, 0.0, -0.038),
+                is_arm: true,
+            },
         ]
     }
 }
@@ -135,12 +209,23 @@ fn forearm_mesh() -> Mesh {
 }
 
 /// A closed cylinder about z from `z0` to `z1`.
-pub fn cylinder(b: &mut MeshBuilder, radius: f32, z0: f32, z1: f32, segments: usize, material: u16) {
+pub fn cylinder(
+    b: &mut MeshBuilder,
+    radius: f32,
+    z0: f32,
+    z1: f32,
+    segments: usize,
+    material: u16,
+) {
     let base = b.mesh.positions.len() as u32;
     for &z in &[z0, z1] {
         for s in 0..segments {
             let a = std::f32::consts::TAU * s as f32 / segments as f32;
-            b.vertex(Point3::new(radius * a.cos(), radius * a.sin(), z), Vector3::z(), [s as f32 / segments as f32, 0.0]);
+            b.vertex(
+                Point3::new(radius * a.cos(), radius * a.sin(), z),
+                Vector3::z(),
+                [s as f32 / segments as f32, 0.0],
+            );
         }
     }
     let centre0 = b.vertex(Point3::new(0.0, 0.0, z0), -Vector3::z(), [0.5, 0.5]);
@@ -160,9 +245,28 @@ fn beam(b: &mut MeshBuilder, from: [f32; 2], to: [f32; 2], thickness: f32, y0: f
     let d = Vector3::new(to[0] - from[0], 0.0, to[1] - from[1]);
     let side = Vector3::new(d.z, 0.0, -d.x).normalize() * thickness;
     let p = |v: [f32; 2], s: f32, y: f32| Point3::new(v[0] + side.x * s, y, v[1] + side.z * s);
-    let corners = [p(from, 0.0, y0), p(to, 0.0, y0), p(to, 1.0, y0), p(from, 1.0, y0), p(from, 0.0, y1), p(to, 0.0, y1), p(to, 1.0, y1), p(from, 1.0, y1)];
-    let ids: Vec<u32> = corners.iter().map(|c| b.vertex(*c, Vector3::z(), [0.0, 0.0])).collect();
-    let faces = [[0, 1, 2, 3], [7, 6, 5, 4], [0, 4, 5, 1], [1, 5, 6, 2], [2, 6, 7, 3], [3, 7, 4, 0]];
+    let corners = [
+        p(from, 0.0, y0),
+        p(to, 0.0, y0),
+        p(to, 1.0, y0),
+        p(from, 1.0, y0),
+        p(from, 0.0, y1),
+        p(to, 0.0, y1),
+        p(to, 1.0, y1),
+        p(from, 1.0, y1),
+    ];
+    let ids: Vec<u32> = corners
+        .iter()
+        .map(|c| b.vertex(*c, Vector3::z(), [0.0, 0.0]))
+        .collect();
+    let faces = [
+        [0, 1, 2, 3],
+        [7, 6, 5, 4],
+        [0, 4, 5, 1],
+        [1, 5, 6, 2],
+        [2, 6, 7, 3],
+        [3, 7, 4, 0],
+    ];
     for f in faces {
         b.quad(ids[f[0]], ids[f[1]], ids[f[2]], ids[f[3]], 0);
     }
@@ -177,10 +281,19 @@ pub fn gripper_boxes(opening: f64) -> Vec<(Point3<f64>, Point3<f64>)> {
     let hw = 0.5 * FINGER_WIDTH_M;
     vec![
         // Palm (gripper body) and wrist.
-        (Point3::new(-0.0416, -0.0345, -TCP_FROM_BASE_M - 0.05), Point3::new(0.0416, 0.0345, z_mount)),
+        (
+            Point3::new(-0.0416, -0.0345, -TCP_FROM_BASE_M - 0.05),
+            Point3::new(0.0416, 0.0345, z_mount),
+        ),
         // Fingers, outward of the pads.
-        (Point3::new(-q - 0.024, -hw, z_mount), Point3::new(-q, hw, z_tip)),
-        (Point3::new(q, -hw, z_mount), Point3::new(q + 0.024, hw, z_tip)),
+        (
+            Point3::new(-q - 0.024, -hw, z_mount),
+            Point3::new(-q, hw, z_tip),
+        ),
+        (
+            Point3::new(q, -hw, z_mount),
+            Point3::new(q + 0.024, hw, z_tip),
+        ),
     ]
 }
 
@@ -196,8 +309,17 @@ mod tests {
             // Inner faces of the fingers in the TCP frame: the finger mesh's
             // largest x (right finger) and, mirrored, the left finger's smallest.
             let xs = |part: &PlacedPart| -> (f64, f64) {
-                let xs: Vec<f64> = part.mesh.positions.iter().filter(|p| p.z > 0.01).map(|p| (part.tcp_to_part * p.cast::<f64>()).x).collect();
-                (xs.iter().cloned().fold(f64::INFINITY, f64::min), xs.iter().cloned().fold(f64::NEG_INFINITY, f64::max))
+                let xs: Vec<f64> = part
+                    .mesh
+                    .positions
+                    .iter()
+                    .filter(|p| p.z > 0.01)
+                    .map(|p| (part.tcp_to_part * p.cast::<f64>()).x)
+                    .collect();
+                (
+                    xs.iter().cloned().fold(f64::INFINITY, f64::min),
+                    xs.iter().cloned().fold(f64::NEG_INFINITY, f64::max),
+                )
             };
             let (_, right_inner) = xs(&parts[1]);
             let (left_inner, _) = xs(&parts[2]);

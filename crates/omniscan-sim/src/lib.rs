@@ -29,6 +29,9 @@ pub enum SimError {
 
 impl SimError {
     pub fn mesh(path: &Path, message: impl Into<String>) -> Self {
-        SimError::Mesh { path: path.to_path_buf(), message: message.into() }
+        SimError::Mesh {
+            path: path.to_path_buf(),
+            message: message.into(),
+        }
     }
 }

@@ -7,18 +7,25 @@ use std::sync::Arc;
 
 use nalgebra::{Point3, Vector3};
 
-use crate::mesh::{Material, Mesh, Texture};
 use crate::SimError;
+use crate::mesh::{Material, Mesh, Texture};
 
 /// Loads a mesh by extension (`.obj`, `.stl`, `.ply`).
 pub fn load_mesh(path: &Path) -> Result<Mesh, SimError> {
-    let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase();
     let mesh = match ext.as_str() {
         "obj" => load_obj(path)?,
         "stl" => load_stl(path)?,
         "ply" => load_ply(path)?,
         _ => {
-            return Err(SimError::mesh(path, "unsupported mesh format: use .obj (with .mtl and texture), .stl or .ply"));
+            return Err(SimError::mesh(
+                path,
+                "unsupported mesh format: use .obj (with .mtl and texture), .stl or .ply",
+            ));
         }
     };
     check(path, mesh)
@@ -30,12 +37,27 @@ fn check(path: &Path, mut mesh: Mesh) -> Result<Mesh, SimError> {
     }
     let n = mesh.positions.len() as u32;
     if let Some(t) = mesh.triangles.iter().find(|t| t.iter().any(|&i| i >= n)) {
-        return Err(SimError::mesh(path, format!("triangle {t:?} refers to a vertex beyond the {n} vertices")));
+        return Err(SimError::mesh(
+            path,
+            format!("triangle {t:?} refers to a vertex beyond the {n} vertices"),
+        ));
     }
-    if mesh.positions.iter().any(|p| !p.coords.iter().all(|c| c.is_finite())) {
-        return Err(SimError::mesh(path, "mesh has a vertex with a NaN or infinite coordinate"));
+    if mesh
+        .positions
+        .iter()
+        .any(|p| !p.coords.iter().all(|c| c.is_finite()))
+    {
+        return Err(SimError::mesh(
+            path,
+            "mesh has a vertex with a NaN or infinite coordinate",
+        ));
     }
-    if mesh.normals.len() != mesh.positions.len() || mesh.normals.iter().any(|n| !n.iter().all(|c| c.is_finite()) || n.norm() < 1e-6) {
+    if mesh.normals.len() != mesh.positions.len()
+        || mesh
+            .normals
+            .iter()
+            .any(|n| !n.iter().all(|c| c.is_finite()) || n.norm() < 1e-6)
+    {
         mesh.compute_normals();
     }
     if mesh.triangle_materials.len() != mesh.triangles.len() {
@@ -48,14 +70,23 @@ fn check(path: &Path, mut mesh: Mesh) -> Result<Mesh, SimError> {
 }
 
 fn load_obj(path: &Path) -> Result<Mesh, SimError> {
-    let options = tobj::LoadOptions { single_index: true, triangulate: true, ignore_points: true, ignore_lines: true };
-    let (models, materials) = tobj::load_obj(path, &options).map_err(|e| SimError::mesh(path, format!("cannot read OBJ: {e}")))?;
+    let options = tobj::LoadOptions {
+        single_index: true,
+        triangulate: true,
+        ignore_points: true,
+        ignore_lines: true,
+    };
+    let (models, materials) = tobj::load_obj(path, &options)
+        .map_err(|e| SimError::mesh(path, format!("cannot read OBJ: {e}")))?;
     let dir = path.parent().unwrap_or(Path::new("."));
     let mut out = Mesh::default();
     let obj_materials = match materials {
         Ok(m) => m,
         Err(e) => {
-            tracing::warn!("{}: material library not loaded ({e}); using grey", path.display());
+            tracing::warn!(
+                "{}: material library not loaded ({e}); using grey",
+                path.display()
+            );
             Vec::new()
         }
     };
@@ -64,12 +95,20 @@ fn load_obj(path: &Path) -> Result<Mesh, SimError> {
         let texture = match &m.diffuse_texture {
             Some(name) => {
                 let tex_path = dir.join(name.trim());
-                let img = omniscan_core::image_io::read_rgb(&tex_path).map_err(|e| SimError::mesh(path, format!("texture: {e}")))?;
-                Some(Arc::new(Texture::from_rgb8(img.width, img.height, &img.data)))
+                let img = omniscan_core::image_io::read_rgb(&tex_path)
+                    .map_err(|e| SimError::mesh(path, format!("texture: {e}")))?;
+                Some(Arc::new(Texture::from_rgb8(
+                    img.width, img.height, &img.data,
+                )))
             }
             None => None,
         };
-        out.materials.push(Material { albedo, texture, specular: 0.12, shininess: 20.0 });
+        out.materials.push(Material {
+            albedo,
+            texture,
+            specular: 0.12,
+            shininess: 20.0,
+        });
     }
     if out.materials.is_empty() {
         out.materials.push(Material::color([0.7, 0.7, 0.7]));
@@ -80,15 +119,25 @@ fn load_obj(path: &Path) -> Result<Mesh, SimError> {
         let m = &model.mesh;
         let base = out.positions.len() as u32;
         let count = m.positions.len() / 3;
-        out.positions.extend(m.positions.chunks_exact(3).map(|p| Point3::new(p[0], p[1], p[2])));
+        out.positions.extend(
+            m.positions
+                .chunks_exact(3)
+                .map(|p| Point3::new(p[0], p[1], p[2])),
+        );
         if m.normals.len() == m.positions.len() {
-            out.normals.extend(m.normals.chunks_exact(3).map(|n| Vector3::new(n[0], n[1], n[2])));
+            out.normals.extend(
+                m.normals
+                    .chunks_exact(3)
+                    .map(|n| Vector3::new(n[0], n[1], n[2])),
+            );
         } else {
-            out.normals.extend(std::iter::repeat_n(Vector3::zeros(), count));
+            out.normals
+                .extend(std::iter::repeat_n(Vector3::zeros(), count));
         }
         if m.texcoords.len() / 2 == count && count > 0 {
             any_uv = true;
-            out.uvs.extend(m.texcoords.chunks_exact(2).map(|t| [t[0], t[1]]));
+            out.uvs
+                .extend(m.texcoords.chunks_exact(2).map(|t| [t[0], t[1]]));
         } else {
             all_uv = false;
             out.uvs.extend(std::iter::repeat_n([0.0, 0.0], count));
@@ -109,22 +158,33 @@ fn load_obj(path: &Path) -> Result<Mesh, SimError> {
 
 fn load_stl(path: &Path) -> Result<Mesh, SimError> {
     let bytes = std::fs::read(path).map_err(|e| SimError::mesh(path, e.to_string()))?;
-    let looks_ascii = bytes.starts_with(b"solid") && bytes.iter().take(1024).any(|&b| b == b'\n') && {
-        let head = String::from_utf8_lossy(&bytes[..bytes.len().min(1024)]);
-        head.contains("facet")
-    };
+    let looks_ascii =
+        bytes.starts_with(b"solid") && bytes.iter().take(1024).any(|&b| b == b'\n') && {
+            let head = String::from_utf8_lossy(&bytes[..bytes.len().min(1024)]);
+            head.contains("facet")
+        };
     let mut mesh = Mesh::default();
     if looks_ascii {
-        let text = std::str::from_utf8(&bytes).map_err(|_| SimError::mesh(path, "ASCII STL is not text"))?;
+        let text = std::str::from_utf8(&bytes)
+            .map_err(|_| SimError::mesh(path, "ASCII STL is not text"))?;
         let mut corner = Vec::with_capacity(3);
         for (line_no, line) in text.lines().enumerate() {
             let mut words = line.split_whitespace();
             if words.next() == Some("vertex") {
-                let v: Vec<f32> = words.map(|w| w.parse::<f32>()).collect::<Result<_, _>>().map_err(|_| {
-                    SimError::mesh(path, format!("line {}: bad vertex `{}`", line_no + 1, line.trim()))
-                })?;
+                let v: Vec<f32> = words
+                    .map(|w| w.parse::<f32>())
+                    .collect::<Result<_, _>>()
+                    .map_err(|_| {
+                        SimError::mesh(
+                            path,
+                            format!("line {}: bad vertex `{}`", line_no + 1, line.trim()),
+                        )
+                    })?;
                 if v.len() != 3 {
-                    return Err(SimError::mesh(path, format!("line {}: a vertex needs 3 numbers", line_no + 1)));
+                    return Err(SimError::mesh(
+                        path,
+                        format!("line {}: a vertex needs 3 numbers", line_no + 1),
+                    ));
                 }
                 corner.push(Point3::new(v[0], v[1], v[2]));
                 if corner.len() == 3 {
@@ -135,17 +195,28 @@ fn load_stl(path: &Path) -> Result<Mesh, SimError> {
         }
     } else {
         if bytes.len() < 84 {
-            return Err(SimError::mesh(path, "binary STL is shorter than its 84-byte header"));
+            return Err(SimError::mesh(
+                path,
+                "binary STL is shorter than its 84-byte header",
+            ));
         }
         let n = u32::from_le_bytes([bytes[80], bytes[81], bytes[82], bytes[83]]) as usize;
         let need = 84 + n * 50;
         if bytes.len() < need {
-            return Err(SimError::mesh(path, format!("binary STL is truncated: {n} triangles need {need} bytes, file has {}", bytes.len())));
+            return Err(SimError::mesh(
+                path,
+                format!(
+                    "binary STL is truncated: {n} triangles need {need} bytes, file has {}",
+                    bytes.len()
+                ),
+            ));
         }
         let f = |o: usize| f32::from_le_bytes([bytes[o], bytes[o + 1], bytes[o + 2], bytes[o + 3]]);
         for t in 0..n {
             let o = 84 + t * 50 + 12;
-            let corner: Vec<Point3<f32>> = (0..3).map(|k| Point3::new(f(o + 12 * k), f(o + 12 * k + 4), f(o + 12 * k + 8))).collect();
+            let corner: Vec<Point3<f32>> = (0..3)
+                .map(|k| Point3::new(f(o + 12 * k), f(o + 12 * k + 4), f(o + 12 * k + 8)))
+                .collect();
             push_facet(&mut mesh, &corner);
         }
     }
@@ -168,10 +239,12 @@ fn weld(mesh: &mut Mesh) {
         .positions
         .iter()
         .map(|p| {
-            *index.entry([p.x.to_bits(), p.y.to_bits(), p.z.to_bits()]).or_insert_with(|| {
-                positions.push(*p);
-                (positions.len() - 1) as u32
-            })
+            *index
+                .entry([p.x.to_bits(), p.y.to_bits(), p.z.to_bits()])
+                .or_insert_with(|| {
+                    positions.push(*p);
+                    (positions.len() - 1) as u32
+                })
         })
         .collect();
     mesh.positions = positions;
@@ -183,30 +256,49 @@ fn weld(mesh: &mut Mesh) {
 
 fn load_ply(path: &Path) -> Result<Mesh, SimError> {
     let ply = omniscan_core::ply::read(path).map_err(|e| SimError::mesh(path, e.to_string()))?;
-    let vertex = ply.element("vertex").ok_or_else(|| SimError::mesh(path, "PLY has no `vertex` element"))?;
+    let vertex = ply
+        .element("vertex")
+        .ok_or_else(|| SimError::mesh(path, "PLY has no `vertex` element"))?;
     let col = |name: &str| vertex.scalar(name);
     let (Some(x), Some(y), Some(z)) = (col("x"), col("y"), col("z")) else {
-        return Err(SimError::mesh(path, "PLY vertices need x, y and z properties"));
+        return Err(SimError::mesh(
+            path,
+            "PLY vertices need x, y and z properties",
+        ));
     };
     let mut mesh = Mesh {
-        positions: (0..vertex.count).map(|i| Point3::new(x[i] as f32, y[i] as f32, z[i] as f32)).collect(),
+        positions: (0..vertex.count)
+            .map(|i| Point3::new(x[i] as f32, y[i] as f32, z[i] as f32))
+            .collect(),
         ..Default::default()
     };
     if let (Some(nx), Some(ny), Some(nz)) = (col("nx"), col("ny"), col("nz")) {
-        mesh.normals = (0..vertex.count).map(|i| Vector3::new(nx[i] as f32, ny[i] as f32, nz[i] as f32)).collect();
+        mesh.normals = (0..vertex.count)
+            .map(|i| Vector3::new(nx[i] as f32, ny[i] as f32, nz[i] as f32))
+            .collect();
     }
-    let uv = [("u", "v"), ("s", "t"), ("texture_u", "texture_v")].iter().find_map(|(a, b)| Some((col(a)?, col(b)?)));
+    let uv = [("u", "v"), ("s", "t"), ("texture_u", "texture_v")]
+        .iter()
+        .find_map(|(a, b)| Some((col(a)?, col(b)?)));
     if let Some((u, v)) = uv {
-        mesh.uvs = (0..vertex.count).map(|i| [u[i] as f32, v[i] as f32]).collect();
+        mesh.uvs = (0..vertex.count)
+            .map(|i| [u[i] as f32, v[i] as f32])
+            .collect();
     }
-    let face = ply.element("face").ok_or_else(|| SimError::mesh(path, "PLY has no `face` element: a point cloud is not a mesh"))?;
+    let face = ply.element("face").ok_or_else(|| {
+        SimError::mesh(
+            path,
+            "PLY has no `face` element: a point cloud is not a mesh",
+        )
+    })?;
     let lists = face
         .list("vertex_indices")
         .or_else(|| face.list("vertex_index"))
         .ok_or_else(|| SimError::mesh(path, "PLY faces need a `vertex_indices` list"))?;
     for f in lists {
         for k in 1..f.len().saturating_sub(1) {
-            mesh.triangles.push([f[0] as u32, f[k] as u32, f[k + 1] as u32]);
+            mesh.triangles
+                .push([f[0] as u32, f[k] as u32, f[k + 1] as u32]);
         }
     }
     mesh.triangle_materials = vec![0; mesh.triangles.len()];
@@ -215,7 +307,11 @@ fn load_ply(path: &Path) -> Result<Mesh, SimError> {
             // Per-vertex colours become an average colour (the simulator's
             // materials are per triangle); a textured PLY keeps its UVs.
             let n = vertex.count.max(1) as f64;
-            let scale = if r.iter().chain(g).chain(b).any(|&v| v > 1.0) { 255.0 } else { 1.0 };
+            let scale = if r.iter().chain(g).chain(b).any(|&v| v > 1.0) {
+                255.0
+            } else {
+                1.0
+            };
             [r, g, b].map(|c| (c.iter().sum::<f64>() / n / scale) as f32)
         }
         _ => [0.7, 0.7, 0.7],
@@ -237,7 +333,9 @@ mod tests {
         assert_eq!(m.triangles.len(), 1);
         let mut bin = vec![0u8; 80];
         bin.extend(1u32.to_le_bytes());
-        for v in [0.0f32, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0] {
+        for v in [
+            0.0f32, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0,
+        ] {
             bin.extend(v.to_le_bytes());
         }
         bin.extend([0, 0]);
@@ -246,7 +344,9 @@ mod tests {
         assert_eq!(m.triangles.len(), 1);
         assert!((m.normals[0].z - 1.0).abs() < 1e-6);
         std::fs::write(dir.path().join("c.stl"), &bin[..100]).unwrap();
-        let err = load_mesh(&dir.path().join("c.stl")).unwrap_err().to_string();
+        let err = load_mesh(&dir.path().join("c.stl"))
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("c.stl") && err.contains("truncated"), "{err}");
         std::fs::write(dir.path().join("d.xyz"), "1 2 3").unwrap();
         assert!(load_mesh(&dir.path().join("d.xyz")).is_err());
@@ -255,8 +355,16 @@ mod tests {
     #[test]
     fn obj_with_texture_and_ply() {
         let dir = tempfile::tempdir().unwrap();
-        std::fs::write(dir.path().join("m.mtl"), "newmtl a\nKd 1 1 1\nmap_Kd tex.png\n").unwrap();
-        let tex = omniscan_core::image_io::RgbImage { width: 2, height: 2, data: vec![255, 0, 0, 0, 255, 0, 0, 0, 255, 255, 255, 255] };
+        std::fs::write(
+            dir.path().join("m.mtl"),
+            "newmtl a\nKd 1 1 1\nmap_Kd tex.png\n",
+        )
+        .unwrap();
+        let tex = omniscan_core::image_io::RgbImage {
+            width: 2,
+            height: 2,
+            data: vec![255, 0, 0, 0, 255, 0, 0, 0, 255, 255, 255, 255],
+        };
         omniscan_core::image_io::write_rgb(&dir.path().join("tex.png"), &tex).unwrap();
         std::fs::write(
             dir.path().join("m.obj"),
@@ -267,7 +375,11 @@ mod tests {
         assert_eq!(m.triangles.len(), 1);
         assert_eq!(m.uvs.len(), 3);
         assert!(m.materials[0].texture.is_some());
-        std::fs::write(dir.path().join("bad.obj"), "mtllib m.mtl\nv 0 0 0\nf 1 2 3\n").unwrap();
+        std::fs::write(
+            dir.path().join("bad.obj"),
+            "mtllib m.mtl\nv 0 0 0\nf 1 2 3\n",
+        )
+        .unwrap();
         assert!(load_mesh(&dir.path().join("bad.obj")).is_err());
         let ply = "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n";
         std::fs::write(dir.path().join("q.ply"), ply).unwrap();

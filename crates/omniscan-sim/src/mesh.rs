@@ -18,9 +18,19 @@ impl Texture {
     pub fn from_rgb8(width: u32, height: u32, data: &[u8]) -> Texture {
         let texels = data
             .chunks_exact(3)
-            .map(|c| [c[0] as f32 / 255.0, c[1] as f32 / 255.0, c[2] as f32 / 255.0])
+            .map(|c| {
+                [
+                    c[0] as f32 / 255.0,
+                    c[1] as f32 / 255.0,
+                    c[2] as f32 / 255.0,
+                ]
+            })
             .collect();
-        Texture { width, height, texels }
+        Texture {
+            width,
+            height,
+            texels,
+        }
     }
 
     /// Bilinear sample at texture coordinates (u, v), v = 0 at the bottom (OBJ convention).
@@ -65,10 +75,20 @@ pub struct Material {
 
 impl Material {
     pub fn color(albedo: [f32; 3]) -> Material {
-        Material { albedo, texture: None, specular: 0.15, shininess: 24.0 }
+        Material {
+            albedo,
+            texture: None,
+            specular: 0.15,
+            shininess: 24.0,
+        }
     }
     pub fn textured(texture: Arc<Texture>) -> Material {
-        Material { albedo: [1.0; 3], texture: Some(texture), specular: 0.15, shininess: 24.0 }
+        Material {
+            albedo: [1.0; 3],
+            texture: Some(texture),
+            specular: 0.15,
+            shininess: 24.0,
+        }
     }
     pub fn with_specular(mut self, specular: f32, shininess: f32) -> Material {
         self.specular = specular;
@@ -103,7 +123,11 @@ impl Mesh {
 
     pub fn triangle(&self, t: usize) -> [Point3<f32>; 3] {
         let [a, b, c] = self.triangles[t];
-        [self.positions[a as usize], self.positions[b as usize], self.positions[c as usize]]
+        [
+            self.positions[a as usize],
+            self.positions[b as usize],
+            self.positions[c as usize],
+        ]
     }
 
     /// Area-weighted centroid of the surface.
@@ -116,7 +140,11 @@ impl Mesh {
             sum += w * (a.coords + b.coords + c.coords) / 3.0;
             area += w;
         }
-        if area > 0.0 { Point3::from(sum / area) } else { Point3::origin() }
+        if area > 0.0 {
+            Point3::from(sum / area)
+        } else {
+            Point3::origin()
+        }
     }
 
     /// Total surface area.
@@ -141,8 +169,10 @@ impl Mesh {
         } else {
             self.uvs.clear();
         }
-        self.triangles.extend(other.triangles.iter().map(|t| t.map(|i| i + base)));
-        self.triangle_materials.extend(other.triangle_materials.iter().map(|m| m + material_base));
+        self.triangles
+            .extend(other.triangles.iter().map(|t| t.map(|i| i + base)));
+        self.triangle_materials
+            .extend(other.triangle_materials.iter().map(|m| m + material_base));
         self.materials.extend(other.materials.iter().cloned());
     }
 
@@ -174,7 +204,10 @@ impl Mesh {
             .positions
             .iter()
             .map(|p| {
-                let n = by_position.get(&key(p)).copied().unwrap_or_else(Vector3::zeros);
+                let n = by_position
+                    .get(&key(p))
+                    .copied()
+                    .unwrap_or_else(Vector3::zeros);
                 let len = n.norm();
                 if len > 0.0 { n / len } else { Vector3::z() }
             })
@@ -191,7 +224,9 @@ impl Mesh {
 
     /// Distance from `p` to the nearest point of the surface (brute force).
     pub fn distance_to_surface(&self, p: &Point3<f32>) -> f32 {
-        (0..self.triangles.len()).map(|t| distance_to_triangle(p, &self.triangle(t))).fold(f32::INFINITY, f32::min)
+        (0..self.triangles.len())
+            .map(|t| distance_to_triangle(p, &self.triangle(t)))
+            .fold(f32::INFINITY, f32::min)
     }
 
     /// Every crossing of the line `origin + s·direction` with the mesh, as
@@ -271,7 +306,12 @@ pub struct MeshBuilder {
 
 impl MeshBuilder {
     pub fn new(material: Material) -> MeshBuilder {
-        MeshBuilder { mesh: Mesh { materials: vec![material], ..Default::default() } }
+        MeshBuilder {
+            mesh: Mesh {
+                materials: vec![material],
+                ..Default::default()
+            },
+        }
     }
 
     pub fn vertex(&mut self, p: Point3<f32>, n: Vector3<f32>, uv: [f32; 2]) -> u32 {
@@ -298,7 +338,13 @@ impl MeshBuilder {
 
     /// A grid surface `f(s, t) -> (position, uv)` over [0,1]², `nu` x `nv`
     /// cells, normals computed afterwards by [`Mesh::compute_normals`].
-    pub fn grid(&mut self, nu: usize, nv: usize, material: u16, f: impl Fn(f32, f32) -> (Point3<f32>, [f32; 2])) {
+    pub fn grid(
+        &mut self,
+        nu: usize,
+        nv: usize,
+        material: u16,
+        f: impl Fn(f32, f32) -> (Point3<f32>, [f32; 2]),
+    ) {
         let base = self.mesh.positions.len() as u32;
         for j in 0..=nv {
             for i in 0..=nu {
@@ -366,7 +412,11 @@ mod tests {
 
     #[test]
     fn bilinear_texture_sampling() {
-        let t = Texture { width: 2, height: 1, texels: vec![[0.0; 3], [1.0; 3]] };
+        let t = Texture {
+            width: 2,
+            height: 1,
+            texels: vec![[0.0; 3], [1.0; 3]],
+        };
         // Texel centres are at u = 0.25 and 0.75.
         assert!((t.sample(0.25, 0.5)[0] - 0.0).abs() < 1e-6);
         assert!((t.sample(0.5, 0.5)[0] - 0.5).abs() < 1e-6);

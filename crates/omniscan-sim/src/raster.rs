@@ -60,7 +60,8 @@ impl Decal {
         if d.norm_squared() > bound * bound {
             return false;
         }
-        if d.dot(&self.normal).abs() > self.depth_tolerance || n.dot(&self.normal) <= 0.2 * n.norm() {
+        if d.dot(&self.normal).abs() > self.depth_tolerance || n.dot(&self.normal) <= 0.2 * n.norm()
+        {
             return false;
         }
         let u = d.dot(&self.tangent);
@@ -150,8 +151,19 @@ pub fn render(
             let to_camera = (world_to_camera * inst.to_world).cast::<f32>();
             let rotation = to_camera.rotation.to_rotation_matrix().into_inner();
             let t = to_camera.translation.vector;
-            let camera_positions = inst.mesh.positions.iter().map(|p| rotation * p.coords + t).collect();
-            PreparedInstance { mesh: inst.mesh, label: inst.label, decals: inst.decals, camera_positions, rotation }
+            let camera_positions = inst
+                .mesh
+                .positions
+                .iter()
+                .map(|p| rotation * p.coords + t)
+                .collect();
+            PreparedInstance {
+                mesh: inst.mesh,
+                label: inst.label,
+                decals: inst.decals,
+                camera_positions,
+                rotation,
+            }
         })
         .collect();
 
@@ -191,16 +203,36 @@ pub fn render(
 
     // Lights in camera space.
     let r_wc = world_to_camera.rotation.cast::<f32>();
-    let lights: Vec<(Vector3<f32>, [f32; 3])> =
-        lighting.lights.iter().map(|l| (r_wc * l.direction.normalize(), l.color)).collect();
-    let shader = Shader { prepared: &prepared, triangles: &triangles, lights: &lights, ambient: lighting.ambient };
+    let lights: Vec<(Vector3<f32>, [f32; 3])> = lighting
+        .lights
+        .iter()
+        .map(|l| (r_wc * l.direction.normalize(), l.color))
+        .collect();
+    let grid = SampleGrid {
+        width: sw,
+        height: sh,
+        supersample: ss,
+    };
+    let shader = Shader {
+        prepared: &prepared,
+        triangles: &triangles,
+        lights: &lights,
+        ambient: lighting.ambient,
+    };
 
     let tile_outputs: Vec<(i32, i32, TileOutput)> = (0..tiles_y)
         .flat_map(|ty| (0..tiles_x).map(move |tx| (tx, ty)))
         .collect::<Vec<_>>()
         .into_par_iter()
         .map(|(tx, ty)| {
-            let out = rasterize_tile(tx, ty, sw, sh, ss, &bins[(ty * tiles_x + tx) as usize], &triangles, &shader);
+            let out = rasterize_tile(
+                tx,
+                ty,
+                grid,
+                &bins[(ty * tiles_x + tx) as usize],
+                &triangles,
+                &shader,
+            );
             (tx, ty, out)
         })
         .collect();
@@ -239,7 +271,13 @@ struct Projection {
 }
 
 impl Projection {
-    fn clip_and_project(&self, v: [Vector3<f32>; 3], instance: u32, triangle: u32, out: &mut Vec<ScreenTriangle>) {
+    fn clip_and_project(
+        &self,
+        v: [Vector3<f32>; 3],
+        instance: u32,
+        triangle: u32,
+        out: &mut Vec<ScreenTriangle>,
+    ) {
         let inside = v.map(|p| p.z >= NEAR);
         let identity = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
         match inside.iter().filter(|&&b| b).count() {
@@ -272,9 +310,17 @@ impl Projection {
         }
     }
 
-    fn emit(&self, v: [Vector3<f32>; 3], source_bary: [[f32; 3]; 3], instance: u32, triangle: u32, out: &mut Vec<ScreenTriangle>) {
+    fn emit(
+        &self,
+        v: [Vector3<f32>; 3],
+        source_bary: [[f32; 3]; 3],
+        instance: u32,
+        triangle: u32,
+        out: &mut Vec<ScreenTriangle>,
+    ) {
         let xy = v.map(|p| [self.fx * p.x / p.z + self.cx, self.fy * p.y / p.z + self.cy]);
-        let area = (xy[1][0] - xy[0][0]) * (xy[2][1] - xy[0][1]) - (xy[1][1] - xy[0][1]) * (xy[2][0] - xy[0][0]);
+        let area = (xy[1][0] - xy[0][0]) * (xy[2][1] - xy[0][1])
+            - (xy[1][1] - xy[0][1]) * (xy[2][0] - xy[0][0]);
         if !area.is_finite() || area.abs() < 1e-8 {
             return;
         }
@@ -318,20 +364,39 @@ struct Sample {
     w2: f32,
 }
 
+/// The sample grid being rendered: its size and the samples per pixel axis.
+#[derive(Clone, Copy)]
+struct SampleGrid {
+    width: i32,
+    height: i32,
+    supersample: i32,
+}
+
 fn rasterize_tile(
     tx: i32,
     ty: i32,
-    sw: i32,
-    sh: i32,
-    ss: i32,
+    grid: SampleGrid,
     bin: &[u32],
     triangles: &[ScreenTriangle],
     shader: &Shader,
 ) -> TileOutput {
+    let SampleGrid {
+        width: sw,
+        height: sh,
+        supersample: ss,
+    } = grid;
     let (ox, oy) = (tx * TILE, ty * TILE);
     let tw = TILE.min(sw - ox);
     let th = TILE.min(sh - oy);
-    let mut samples = vec![Sample { inv_z: 0.0, triangle: NO_TRIANGLE, w1: 0.0, w2: 0.0 }; (tw * th) as usize];
+    let mut samples = vec![
+        Sample {
+            inv_z: 0.0,
+            triangle: NO_TRIANGLE,
+            w1: 0.0,
+            w2: 0.0
+        };
+        (tw * th) as usize
+    ];
     for &id in bin {
         let tri = &triangles[id as usize];
         let [a, b, c] = tri.xy;
@@ -360,7 +425,12 @@ fn rasterize_tile(
                 let iz = w0 * z0 + w1 * z1 + w2 * z2;
                 let s = &mut samples[row + (x - ox) as usize];
                 if iz > s.inv_z {
-                    *s = Sample { inv_z: iz, triangle: id, w1, w2 };
+                    *s = Sample {
+                        inv_z: iz,
+                        triangle: id,
+                        w1,
+                        w2,
+                    };
                 }
             }
         }
@@ -413,7 +483,9 @@ fn rasterize_tile(
             for s in &group {
                 counts[shader.label_index(s.triangle)] += 1;
             }
-            let winner = (0..5).max_by_key(|&i| (counts[i], std::cmp::Reverse(i))).unwrap();
+            let winner = (0..5)
+                .max_by_key(|&i| (counts[i], std::cmp::Reverse(i)))
+                .unwrap();
             let mut depth_sum = 0.0;
             let mut depth_n = 0;
             for s in &group {
@@ -422,8 +494,13 @@ fn rasterize_tile(
                     depth_n += 1;
                 }
             }
-            out.rgb.push(color.map(|c| (c.clamp(0.0, 1.0) * 255.0 + 0.5) as u8));
-            out.depth.push(if depth_n > 0 { depth_sum / depth_n as f32 } else { 0.0 });
+            out.rgb
+                .push(color.map(|c| (c.clamp(0.0, 1.0) * 255.0 + 0.5) as u8));
+            out.depth.push(if depth_n > 0 {
+                depth_sum / depth_n as f32
+            } else {
+                0.0
+            });
             out.labels.push(match winner {
                 1 => Label::Object,
                 2 => Label::Gripper,
@@ -475,7 +552,8 @@ impl Shader<'_> {
         ];
         let t = tri.triangle as usize;
         let [ia, ib, ic] = mesh.triangles[t].map(|i| i as usize);
-        let material = &mesh.materials[mesh.triangle_materials.get(t).copied().unwrap_or(0) as usize];
+        let material =
+            &mesh.materials[mesh.triangle_materials.get(t).copied().unwrap_or(0) as usize];
         let mut albedo = material.albedo;
         if let Some(texture) = &material.texture
             && !mesh.uvs.is_empty()
@@ -490,7 +568,9 @@ impl Shader<'_> {
         let n_mesh = mesh.normals[ia] * b[0] + mesh.normals[ib] * b[1] + mesh.normals[ic] * b[2];
         if !inst.decals.is_empty() {
             let p = Point3::from(
-                mesh.positions[ia].coords * b[0] + mesh.positions[ib].coords * b[1] + mesh.positions[ic].coords * b[2],
+                mesh.positions[ia].coords * b[0]
+                    + mesh.positions[ib].coords * b[1]
+                    + mesh.positions[ic].coords * b[2],
             );
             for d in inst.decals {
                 if d.covers(&p, &n_mesh) {
@@ -502,12 +582,18 @@ impl Shader<'_> {
         let mut n = inst.rotation * n_mesh;
         let len = n.norm();
         n = if len > 0.0 { n / len } else { Vector3::z() };
-        let position = inst.camera_positions[ia] * b[0] + inst.camera_positions[ib] * b[1] + inst.camera_positions[ic] * b[2];
+        let position = inst.camera_positions[ia] * b[0]
+            + inst.camera_positions[ib] * b[1]
+            + inst.camera_positions[ic] * b[2];
         let view = -position.normalize();
         if n.dot(&view) < 0.0 {
             n = -n;
         }
-        let mut out = [albedo[0] * self.ambient[0], albedo[1] * self.ambient[1], albedo[2] * self.ambient[2]];
+        let mut out = [
+            albedo[0] * self.ambient[0],
+            albedo[1] * self.ambient[1],
+            albedo[2] * self.ambient[2],
+        ];
         for (dir, color) in self.lights {
             let diffuse = n.dot(dir).max(0.0);
             if diffuse <= 0.0 {
@@ -536,29 +622,58 @@ mod tests {
     }
 
     fn camera() -> (Intrinsics, Isometry3<f64>) {
-        let k = Intrinsics { width: 64, height: 48, fx: 60.0, fy: 60.0, cx: 32.0, cy: 24.0 };
-        let pose = look_at(&Point3::new(0.0, 0.0, -5.0), &Point3::origin(), &Vector3::y());
+        let k = Intrinsics {
+            width: 64,
+            height: 48,
+            fx: 60.0,
+            fy: 60.0,
+            cx: 32.0,
+            cy: 24.0,
+        };
+        let pose = look_at(
+            &Point3::new(0.0, 0.0, -5.0),
+            &Point3::origin(),
+            &Vector3::y(),
+        );
         (k, pose)
     }
 
     fn lighting() -> Lighting {
-        Lighting { ambient: [0.3; 3], lights: vec![Light { direction: Vector3::new(0.0, 0.0, -1.0), color: [0.7; 3] }] }
+        Lighting {
+            ambient: [0.3; 3],
+            lights: vec![Light {
+                direction: Vector3::new(0.0, 0.0, -1.0),
+                color: [0.7; 3],
+            }],
+        }
     }
 
     #[test]
     fn box_depth_and_silhouette_match_closed_form() {
         let mesh = unit_box([0.8, 0.2, 0.2]);
         let (k, pose) = camera();
-        let inst = [Instance { mesh: &mesh, to_world: Isometry3::identity(), label: Label::Object, decals: &[] }];
+        let inst = [Instance {
+            mesh: &mesh,
+            to_world: Isometry3::identity(),
+            label: Label::Object,
+            decals: &[],
+        }];
         let view = render(&inst, &lighting(), &k, &pose, 1);
         // The front face is at distance 4.5 from the camera; it spans ±0.5 m,
         // i.e. ±60·0.5/4.5 = ±6.67 px around the centre.
         let centre = (24 * 64 + 32) as usize;
         assert_eq!(view.labels[centre], Label::Object);
-        assert!((view.depth[centre] - 4.5).abs() < 1e-4, "{}", view.depth[centre]);
+        assert!(
+            (view.depth[centre] - 4.5).abs() < 1e-4,
+            "{}",
+            view.depth[centre]
+        );
         let covered = view.labels.iter().filter(|&&l| l == Label::Object).count();
         let expected = (2.0f32 * 60.0 * 0.5 / 4.5).powi(2);
-        assert!((covered as f32 - expected).abs() < 30.0, "{covered} vs {expected}");
+        assert!(
+            (covered as f32 - expected).abs() < 30.0,
+            "{covered} vs {expected}"
+        );
         // Lit face: ambient + full diffuse + the specular peak (light and view coincide).
         let r = view.rgb[centre * 3] as f32 / 255.0;
         assert!((r - (0.8 * (0.3 + 0.7) + 0.15 * 0.7)).abs() < 0.01, "{r}");
@@ -572,8 +687,18 @@ mod tests {
         let far = unit_box([1.0, 0.0, 0.0]);
         let (k, pose) = camera();
         let inst = [
-            Instance { mesh: &far, to_world: Isometry3::translation(0.0, 0.0, 1.0), label: Label::Scene, decals: &[] },
-            Instance { mesh: &near, to_world: Isometry3::translation(0.0, 0.0, -1.0), label: Label::Gripper, decals: &[] },
+            Instance {
+                mesh: &far,
+                to_world: Isometry3::translation(0.0, 0.0, 1.0),
+                label: Label::Scene,
+                decals: &[],
+            },
+            Instance {
+                mesh: &near,
+                to_world: Isometry3::translation(0.0, 0.0, -1.0),
+                label: Label::Gripper,
+                decals: &[],
+            },
         ];
         let view = render(&inst, &lighting(), &k, &pose, 2);
         let centre = (24 * 64 + 32) as usize;
@@ -581,10 +706,19 @@ mod tests {
         assert!((view.depth[centre] - 3.5).abs() < 1e-3);
         // A box around the camera: its walls cross the near plane and are
         // clipped; what remains is the wall 0.5 m ahead, over the whole image.
-        let around = [Instance { mesh: &far, to_world: Isometry3::translation(0.0, 0.0, -5.0), label: Label::Arm, decals: &[] }];
+        let around = [Instance {
+            mesh: &far,
+            to_world: Isometry3::translation(0.0, 0.0, -5.0),
+            label: Label::Arm,
+            decals: &[],
+        }];
         let view = render(&around, &lighting(), &k, &pose, 2);
         assert!(view.labels.iter().all(|&l| l == Label::Arm));
-        assert!((view.depth[centre] - 0.5).abs() < 1e-3, "{}", view.depth[centre]);
+        assert!(
+            (view.depth[centre] - 0.5).abs() < 1e-3,
+            "{}",
+            view.depth[centre]
+        );
         assert!(view.depth.iter().all(|&d| d > 0.0 && d < 0.8));
     }
 }

@@ -17,7 +17,9 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use omniscan_core::capture::{CameraSpec, CaptureFile, CaptureGroundTruth, Frame, FrameGroundTruth, Handover, TrajectoryIndex};
+use omniscan_core::capture::{
+    CameraSpec, CaptureFile, CaptureGroundTruth, Frame, FrameGroundTruth, Handover, TrajectoryIndex,
+};
 use omniscan_core::image_io::{self, DepthMm, Mask, RgbImage};
 use omniscan_core::plan::ScanPlanConfig;
 use omniscan_core::{Arm, Intrinsics, Pose, RigidTransform};
@@ -95,9 +97,18 @@ pub struct SimObject {
 pub fn load_object(spec: &str, scale: Option<f64>) -> Result<SimObject, SimError> {
     if let Some(name) = spec.strip_prefix("builtin:") {
         let mesh = builtin_object(name).ok_or_else(|| {
-            SimError::Invalid(format!("unknown built-in object `{name}`; built-ins: {}", BUILTIN_OBJECTS.join(", ")))
+            SimError::Invalid(format!(
+                "unknown built-in object `{name}`; built-ins: {}",
+                BUILTIN_OBJECTS.join(", ")
+            ))
         })?;
-        return Ok(SimObject { mesh, decals: vec![], name: name.into(), scale: 1.0, offset_m: [0.0; 3] });
+        return Ok(SimObject {
+            mesh,
+            decals: vec![],
+            name: name.into(),
+            scale: 1.0,
+            offset_m: [0.0; 3],
+        });
     }
     let path = Path::new(spec);
     let mut mesh = crate::loaders::load_mesh(path)?;
@@ -105,7 +116,11 @@ pub fn load_object(spec: &str, scale: Option<f64>) -> Result<SimObject, SimError
     let extent = (hi - lo).max() as f64;
     let scale = match scale {
         Some(s) if s.is_finite() && s > 0.0 => s,
-        Some(s) => return Err(SimError::Invalid(format!("--object-scale must be a positive number, got {s}"))),
+        Some(s) => {
+            return Err(SimError::Invalid(format!(
+                "--object-scale must be a positive number, got {s}"
+            )));
+        }
         None if extent > 0.5 => {
             return Err(SimError::mesh(
                 path,
@@ -121,11 +136,35 @@ pub fn load_object(spec: &str, scale: Option<f64>) -> Result<SimObject, SimError
     mesh.scale_translate(scale as f32, -centre);
     let size = (hi - lo).max() as f64 * scale;
     if !(0.01..=0.4).contains(&size) {
-        return Err(SimError::mesh(path, format!("the object is {:.1} cm across after scaling; the simulator handles 1-40 cm", size * 100.0)));
+        return Err(SimError::mesh(
+            path,
+            format!(
+                "the object is {:.1} cm across after scaling; the simulator handles 1-40 cm",
+                size * 100.0
+            ),
+        ));
     }
-    let name = path.file_stem().and_then(|s| s.to_str()).unwrap_or("object").to_string();
-    let name = if name == "model" { path.parent().and_then(|p| p.file_name()).and_then(|s| s.to_str()).unwrap_or("model").to_string() } else { name };
-    Ok(SimObject { mesh, decals: vec![], name, scale, offset_m: (-centre.cast::<f64>()).into() })
+    let name = path
+        .file_stem()
+        .and_then(|s| s.to_str())
+        .unwrap_or("object")
+        .to_string();
+    let name = if name == "model" {
+        path.parent()
+            .and_then(|p| p.file_name())
+            .and_then(|s| s.to_str())
+            .unwrap_or("model")
+            .to_string()
+    } else {
+        name
+    };
+    Ok(SimObject {
+        mesh,
+        decals: vec![],
+        name,
+        scale,
+        offset_m: (-centre.cast::<f64>()).into(),
+    })
 }
 
 /// One image to render.
@@ -152,7 +191,11 @@ impl FramePlan {
         format!("{}images/{}.png", self.prefix(), self.stem())
     }
     pub fn depth_path(&self, noisy: bool) -> String {
-        if noisy { format!("{}depth/{}.png", self.prefix(), self.stem()) } else { self.gt_depth_path() }
+        if noisy {
+            format!("{}depth/{}.png", self.prefix(), self.stem())
+        } else {
+            self.gt_depth_path()
+        }
     }
     pub fn gt_depth_path(&self) -> String {
         format!("{}gt/depth/{}.png", self.prefix(), self.stem())
@@ -174,7 +217,11 @@ pub struct Layers {
 }
 
 impl Layers {
-    pub const ALL: Layers = Layers { scene: true, object: true, gripper: true };
+    pub const ALL: Layers = Layers {
+        scene: true,
+        object: true,
+        gripper: true,
+    };
 }
 
 /// A prepared simulation: object, grasps, robot, scene, camera and frames.
@@ -216,17 +263,31 @@ impl Simulation {
     pub fn new(config: SimConfig) -> Result<Simulation, SimError> {
         config.plan.validate().map_err(SimError::Invalid)?;
         if config.width < 16 || config.height < 16 || config.width > 4096 || config.height > 4096 {
-            return Err(SimError::Invalid(format!("image size {}x{} is outside 16-4096 pixels", config.width, config.height)));
+            return Err(SimError::Invalid(format!(
+                "image size {}x{} is outside 16-4096 pixels",
+                config.width, config.height
+            )));
         }
         if !(1..=4).contains(&config.supersample) {
             return Err(SimError::Invalid("supersample must be 1-4".into()));
         }
-        for (name, v) in [("slip_deg", config.slip_deg), ("slip_mm", config.slip_mm), ("depth noise", config.depth_noise_m_at_1m)] {
+        for (name, v) in [
+            ("slip_deg", config.slip_deg),
+            ("slip_mm", config.slip_mm),
+            ("depth noise", config.depth_noise_m_at_1m),
+        ] {
             if !(v.is_finite() && v >= 0.0) {
-                return Err(SimError::Invalid(format!("{name} must be a non-negative number, got {v}")));
+                return Err(SimError::Invalid(format!(
+                    "{name} must be a non-negative number, got {v}"
+                )));
             }
         }
-        let defect_spec: Option<DefectSpec> = config.defect.as_deref().map(DefectSpec::from_str).transpose().map_err(SimError::Invalid)?;
+        let defect_spec: Option<DefectSpec> = config
+            .defect
+            .as_deref()
+            .map(DefectSpec::from_str)
+            .transpose()
+            .map_err(SimError::Invalid)?;
         let mut object = load_object(&config.object, config.object_scale)?;
         let gripper = match &config.gripper_dir {
             Some(dir) => GripperModel::from_yumi_dir(dir)?,
@@ -242,8 +303,19 @@ impl Simulation {
         let (left_grasp, right_grasp) = plan_grasp_pair(&object.mesh, &settings)?;
         let defect = match defect_spec {
             Some(spec) => {
-                let avoid: Vec<Point3<f64>> = left_grasp.contacts.iter().chain(&right_grasp.contacts).map(|c| Point3::from(*c)).collect();
-                let (record, decals) = plant_defect(&mut object.mesh, &spec, config.seed ^ 0xd3f3c7, &avoid, 0.012 + spec.size_mm * 1e-3)?;
+                let avoid: Vec<Point3<f64>> = left_grasp
+                    .contacts
+                    .iter()
+                    .chain(&right_grasp.contacts)
+                    .map(|c| Point3::from(*c))
+                    .collect();
+                let (record, decals) = plant_defect(
+                    &mut object.mesh,
+                    &spec,
+                    config.seed ^ 0xd3f3c7,
+                    &avoid,
+                    0.012 + spec.size_mm * 1e-3,
+                )?;
                 object.decals = decals;
                 Some(record)
             }
@@ -253,7 +325,9 @@ impl Simulation {
         let mut plan = config.plan;
         let (lo, hi) = object.mesh.bounds();
         let radius = 0.5 * (hi - lo).cast::<f64>().norm();
-        plan.camera_distance_m = config.camera_distance_m.unwrap_or_else(|| (5.5 * radius + 0.05).clamp(0.25, 0.9));
+        plan.camera_distance_m = config
+            .camera_distance_m
+            .unwrap_or_else(|| (5.5 * radius + 0.05).clamp(0.25, 0.9));
         plan.validate().map_err(SimError::Invalid)?;
         let intrinsics = plan.intrinsics(config.width, config.height);
         let camera_to_world = plan.camera_to_world();
@@ -262,7 +336,11 @@ impl Simulation {
         let object_to_right_commanded = right_grasp.object_to_gripper();
         let mut rng = ChaCha8Rng::seed_from_u64(config.seed ^ 0x511b);
         let random_unit = |rng: &mut ChaCha8Rng| loop {
-            let v = Vector3::new(rng.random::<f64>() * 2.0 - 1.0, rng.random::<f64>() * 2.0 - 1.0, rng.random::<f64>() * 2.0 - 1.0);
+            let v = Vector3::new(
+                rng.random::<f64>() * 2.0 - 1.0,
+                rng.random::<f64>() * 2.0 - 1.0,
+                rng.random::<f64>() * 2.0 - 1.0,
+            );
             if v.norm() > 0.1 && v.norm() <= 1.0 {
                 break v.normalize();
             }
@@ -271,7 +349,10 @@ impl Simulation {
         let slip_direction = random_unit(&mut rng);
         let slip = Pose::from_parts(
             Translation3::from(slip_direction * config.slip_mm * 1e-3),
-            UnitQuaternion::from_axis_angle(&nalgebra::Unit::new_normalize(slip_axis), config.slip_deg.to_radians()),
+            UnitQuaternion::from_axis_angle(
+                &nalgebra::Unit::new_normalize(slip_axis),
+                config.slip_deg.to_radians(),
+            ),
         );
         let object_to_right = slip * object_to_right_commanded;
         let left_handover = plan.left_handover_pose();
@@ -290,7 +371,15 @@ impl Simulation {
                         (false, Arm::Left) => (Some(object_to_left), left_grasp.width_m),
                         (false, Arm::Right) => (Some(object_to_right), right_grasp.width_m),
                     };
-                    frames.push(FramePlan { arm, empty, index, trajectory: p.trajectory, gripper_to_world: p.gripper_to_world.0, object_to_gripper, opening_m });
+                    frames.push(FramePlan {
+                        arm,
+                        empty,
+                        index,
+                        trajectory: p.trajectory,
+                        gripper_to_world: p.gripper_to_world.0,
+                        object_to_gripper,
+                        opening_m,
+                    });
                 }
             }
         }
@@ -323,11 +412,21 @@ impl Simulation {
     }
 
     /// Renders one frame with the chosen layers at the given supersampling.
-    pub fn render_frame(&self, frame: &FramePlan, layers: Layers, supersample: u32) -> RenderedView {
+    pub fn render_frame(
+        &self,
+        frame: &FramePlan,
+        layers: Layers,
+        supersample: u32,
+    ) -> RenderedView {
         let parts = self.gripper.parts(frame.opening_m);
         let mut instances = Vec::with_capacity(parts.len() + 2);
         if layers.scene {
-            instances.push(Instance { mesh: &self.scene, to_world: Pose::identity(), label: Label::Scene, decals: &[] });
+            instances.push(Instance {
+                mesh: &self.scene,
+                to_world: Pose::identity(),
+                label: Label::Scene,
+                decals: &[],
+            });
         }
         if layers.object
             && let Some(object_to_gripper) = frame.object_to_gripper
@@ -344,12 +443,22 @@ impl Simulation {
                 instances.push(Instance {
                     mesh: part.mesh,
                     to_world: frame.gripper_to_world * part.tcp_to_part,
-                    label: if part.is_arm { Label::Arm } else { Label::Gripper },
+                    label: if part.is_arm {
+                        Label::Arm
+                    } else {
+                        Label::Gripper
+                    },
                     decals: &[],
                 });
             }
         }
-        render(&instances, &self.lighting, &self.intrinsics, &self.camera_to_world, supersample)
+        render(
+            &instances,
+            &self.lighting,
+            &self.intrinsics,
+            &self.camera_to_world,
+            supersample,
+        )
     }
 
     fn noisy(&self) -> bool {
@@ -357,7 +466,11 @@ impl Simulation {
     }
 
     fn frame_files(&self, frame: &FramePlan) -> Vec<String> {
-        let mut files = vec![frame.image_path(), frame.gt_depth_path(), frame.gt_gripper_mask_path()];
+        let mut files = vec![
+            frame.image_path(),
+            frame.gt_depth_path(),
+            frame.gt_gripper_mask_path(),
+        ];
         if !frame.empty {
             files.push(frame.gt_object_mask_path());
         }
@@ -370,21 +483,56 @@ impl Simulation {
     /// Converts a rendered view into the files of one frame.
     fn encode(&self, frame: &FramePlan, view: &RenderedView) -> Vec<(String, Encoded)> {
         let (w, h) = (view.width, view.height);
-        let to_mm = |d: f32| if d > 0.0 { (d as f64 * 1000.0).round().clamp(1.0, 65535.0) as u16 } else { 0 };
-        let depth = DepthMm { width: w, height: h, data: view.depth.iter().map(|&d| to_mm(d)).collect() };
-        let mask = |label: Label| Mask { width: w, height: h, data: view.labels.iter().map(|&l| if l == label { 255 } else { 0 }).collect() };
+        let to_mm = |d: f32| {
+            if d > 0.0 {
+                (d as f64 * 1000.0).round().clamp(1.0, 65535.0) as u16
+            } else {
+                0
+            }
+        };
+        let depth = DepthMm {
+            width: w,
+            height: h,
+            data: view.depth.iter().map(|&d| to_mm(d)).collect(),
+        };
+        let mask = |label: Label| Mask {
+            width: w,
+            height: h,
+            data: view
+                .labels
+                .iter()
+                .map(|&l| if l == label { 255 } else { 0 })
+                .collect(),
+        };
         let mut out = vec![
-            (frame.image_path(), Encoded::Rgb(RgbImage { width: w, height: h, data: view.rgb.clone() })),
+            (
+                frame.image_path(),
+                Encoded::Rgb(RgbImage {
+                    width: w,
+                    height: h,
+                    data: view.rgb.clone(),
+                }),
+            ),
             (frame.gt_depth_path(), Encoded::Depth(depth)),
-            (frame.gt_gripper_mask_path(), Encoded::Mask(mask(Label::Gripper))),
+            (
+                frame.gt_gripper_mask_path(),
+                Encoded::Mask(mask(Label::Gripper)),
+            ),
         ];
         if !frame.empty {
-            out.push((frame.gt_object_mask_path(), Encoded::Mask(mask(Label::Object))));
+            out.push((
+                frame.gt_object_mask_path(),
+                Encoded::Mask(mask(Label::Object)),
+            ));
         }
         if self.noisy() {
             // Seeded per frame, so that resuming gives the same bytes.
-            let id = frame.index as u64 + if frame.arm == Arm::Right { 1 << 20 } else { 0 } + if frame.empty { 1 << 21 } else { 0 };
-            let mut rng = ChaCha8Rng::seed_from_u64(self.config.seed ^ 0xde9 ^ id.wrapping_mul(0x9e3779b97f4a7c15));
+            let id = frame.index as u64
+                + if frame.arm == Arm::Right { 1 << 20 } else { 0 }
+                + if frame.empty { 1 << 21 } else { 0 };
+            let mut rng = ChaCha8Rng::seed_from_u64(
+                self.config.seed ^ 0xde9 ^ id.wrapping_mul(0x9e3779b97f4a7c15),
+            );
             let k = self.config.depth_noise_m_at_1m;
             let data = view
                 .depth
@@ -400,7 +548,14 @@ impl Simulation {
                     to_mm((z + n * k * z * z) as f32)
                 })
                 .collect();
-            out.push((frame.depth_path(true), Encoded::Depth(DepthMm { width: w, height: h, data })));
+            out.push((
+                frame.depth_path(true),
+                Encoded::Depth(DepthMm {
+                    width: w,
+                    height: h,
+                    data,
+                }),
+            ));
         }
         out
     }
@@ -436,8 +591,14 @@ impl Simulation {
                 "triangles": self.object.mesh.triangles.len(),
             }),
         );
-        extra.insert("object_to_right_gripper_commanded".into(), serde_json::to_value(RigidTransform(self.object_to_right_commanded)).unwrap());
-        extra.insert("grasps".into(), serde_json::json!({ "left": self.left_grasp, "right": self.right_grasp }));
+        extra.insert(
+            "object_to_right_gripper_commanded".into(),
+            serde_json::to_value(RigidTransform(self.object_to_right_commanded)).unwrap(),
+        );
+        extra.insert(
+            "grasps".into(),
+            serde_json::json!({ "left": self.left_grasp, "right": self.right_grasp }),
+        );
         extra.insert("slip".into(), self.slip.clone());
         extra.insert("defect".into(), serde_json::to_value(&self.defect).unwrap());
         extra.insert(
@@ -454,13 +615,26 @@ impl Simulation {
         );
         CaptureFile {
             version: omniscan_core::capture::CAPTURE_VERSION,
-            camera: CameraSpec { intrinsics: self.intrinsics, camera_to_world: RigidTransform(self.camera_to_world) },
+            camera: CameraSpec {
+                intrinsics: self.intrinsics,
+                camera_to_world: RigidTransform(self.camera_to_world),
+            },
             handover: Handover {
                 left_gripper_to_world: RigidTransform(self.left_handover),
                 right_gripper_to_world: RigidTransform(self.right_handover),
             },
-            frames: self.frames.iter().filter(|f| !f.empty).map(to_frame).collect(),
-            empty_frames: self.frames.iter().filter(|f| f.empty).map(to_frame).collect(),
+            frames: self
+                .frames
+                .iter()
+                .filter(|f| !f.empty)
+                .map(to_frame)
+                .collect(),
+            empty_frames: self
+                .frames
+                .iter()
+                .filter(|f| f.empty)
+                .map(to_frame)
+                .collect(),
             gt: Some(CaptureGroundTruth {
                 object_to_left_gripper: RigidTransform(self.object_to_left),
                 object_to_right_gripper: RigidTransform(self.object_to_right),
@@ -477,7 +651,11 @@ impl Simulation {
 
     /// Renders every frame into `out` and writes `capture.json` last.
     /// `progress(done, total)` is called after each frame.
-    pub fn run(&self, out: &Path, progress: &(dyn Fn(usize, usize) + Sync)) -> Result<SimSummary, SimError> {
+    pub fn run(
+        &self,
+        out: &Path,
+        progress: &(dyn Fn(usize, usize) + Sync),
+    ) -> Result<SimSummary, SimError> {
         let start = std::time::Instant::now();
         std::fs::create_dir_all(out).map_err(|e| omniscan_core::CoreError::io(out, e))?;
         let marker = out.join(".omniscan-sim.json");
@@ -492,7 +670,10 @@ impl Simulation {
                 )));
             }
         } else if out.join(omniscan_core::capture::CAPTURE_FILE).exists() {
-            return Err(SimError::Invalid(format!("{} already holds a capture; choose another --out directory", out.display())));
+            return Err(SimError::Invalid(format!(
+                "{} already holds a capture; choose another --out directory",
+                out.display()
+            )));
         }
         omniscan_core::io::write_json_atomic(&marker, &config_json)?;
 
@@ -504,7 +685,11 @@ impl Simulation {
         for chunk in self.frames.chunks(6) {
             let mut pending = Vec::new();
             for frame in chunk {
-                if self.frame_files(frame).iter().all(|f| out.join(f).is_file()) {
+                if self
+                    .frame_files(frame)
+                    .iter()
+                    .all(|f| out.join(f).is_file())
+                {
                     resumed += 1;
                 } else {
                     let view = self.render_frame(frame, Layers::ALL, self.config.supersample);
@@ -512,7 +697,9 @@ impl Simulation {
                     rendered += 1;
                 }
             }
-            pending.into_par_iter().try_for_each(|(rel, data)| data.write(&out.join(rel)))?;
+            pending
+                .into_par_iter()
+                .try_for_each(|(rel, data)| data.write(&out.join(rel)))?;
             done += chunk.len();
             progress(done, total);
         }

@@ -16,7 +16,11 @@ use omniscan_core::poses::ViewSet;
 use omniscan_sim::{SimConfig, Simulation};
 
 #[derive(Parser)]
-#[command(name = "omniscan", version, about = "360° Gaussian-splat digital twins from bimanual in-hand scans (Omni-Scan)")]
+#[command(
+    name = "omniscan",
+    version,
+    about = "360° Gaussian-splat digital twins from bimanual in-hand scans (Omni-Scan)"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -195,7 +199,9 @@ impl SimArgs {
 
 fn main() {
     tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()))
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
+        )
         .with_writer(std::io::stderr)
         .init();
     if let Err(e) = run(Cli::parse()) {
@@ -207,9 +213,11 @@ fn main() {
 fn progress_bar(total: usize, what: &str) -> ProgressBar {
     let bar = ProgressBar::new(total as u64);
     bar.set_style(
-        ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} frames, {elapsed_precise} (eta {eta})")
-            .unwrap()
-            .progress_chars("=> "),
+        ProgressStyle::with_template(
+            "{msg} [{bar:40}] {pos}/{len} frames, {elapsed_precise} (eta {eta})",
+        )
+        .unwrap()
+        .progress_chars("=> "),
     );
     bar.set_message(what.to_string());
     bar
@@ -218,7 +226,9 @@ fn progress_bar(total: usize, what: &str) -> ProgressBar {
 fn simulate(config: SimConfig, out: &Path) -> Result<omniscan_sim::SimSummary> {
     let sim = Simulation::new(config).context("cannot set up the simulation")?;
     let bar = progress_bar(sim.frames.len(), "simulating");
-    let summary = sim.run(out, &|done, _| bar.set_position(done as u64)).with_context(|| format!("simulation into {} failed", out.display()))?;
+    let summary = sim
+        .run(out, &|done, _| bar.set_position(done as u64))
+        .with_context(|| format!("simulation into {} failed", out.display()))?;
     bar.finish_and_clear();
     Ok(summary)
 }
@@ -227,8 +237,15 @@ fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Demo { out, object } => {
             let capture_dir = out.join("capture");
-            let config = SimConfig { object, ..SimConfig::default() };
-            eprintln!("1/3 simulating a bimanual scan of {} into {}", config.object, capture_dir.display());
+            let config = SimConfig {
+                object,
+                ..SimConfig::default()
+            };
+            eprintln!(
+                "1/3 simulating a bimanual scan of {} into {}",
+                config.object,
+                capture_dir.display()
+            );
             let summary = simulate(config, &capture_dir)?;
             eprintln!(
                 "    {} frames + {} empty-gripper frames in {:.1} s",
@@ -237,9 +254,19 @@ fn run(cli: Cli) -> Result<()> {
             eprintln!("2/3 validating the capture");
             let capture = Capture::load(&capture_dir)?;
             let s = capture.summary();
-            eprintln!("    {}x{}, {} left, {} right, {} empty frames, ground truth: {}", s.width, s.height, s.left_frames, s.right_frames, s.empty_frames, s.ground_truth);
+            eprintln!(
+                "    {}x{}, {} left, {} right, {} empty frames, ground truth: {}",
+                s.width, s.height, s.left_frames, s.right_frames, s.empty_frames, s.ground_truth
+            );
             eprintln!("3/3 exporting both arms (handover-merged) for nerfstudio");
-            let export = export_nerfstudio(&capture, &out.join("nerfstudio"), ExportOptions { views: ViewSet::merged_from_handover(&capture), masks: true })?;
+            let export = export_nerfstudio(
+                &capture,
+                &out.join("nerfstudio"),
+                ExportOptions {
+                    views: ViewSet::merged_from_handover(&capture),
+                    masks: true,
+                },
+            )?;
             println!(
                 "{}",
                 serde_json::to_string_pretty(&json!({
@@ -284,15 +311,31 @@ fn run(cli: Cli) -> Result<()> {
                 );
             }
         }
-        Command::ExportNerfstudio { capture, arm, out, no_masks } => {
+        Command::ExportNerfstudio {
+            capture,
+            arm,
+            out,
+            no_masks,
+        } => {
             let loaded = Capture::load(&capture)?;
             let views = match arm {
                 ArmChoice::Left => ViewSet::Arm(Arm::Left),
                 ArmChoice::Right => ViewSet::Arm(Arm::Right),
                 ArmChoice::Both => ViewSet::merged_from_handover(&loaded),
             };
-            let summary = export_nerfstudio(&loaded, &out, ExportOptions { views, masks: !no_masks })?;
-            println!("wrote {} ({} frames)", summary.transforms.display(), summary.frames);
+            let summary = export_nerfstudio(
+                &loaded,
+                &out,
+                ExportOptions {
+                    views,
+                    masks: !no_masks,
+                },
+            )?;
+            println!(
+                "wrote {} ({} frames)",
+                summary.transforms.display(),
+                summary.frames
+            );
         }
         Command::Plan { plan, json } => {
             let config = plan.config();
@@ -315,16 +358,33 @@ fn run(cli: Cli) -> Result<()> {
                     }))?
                 );
             } else {
-                println!("scan plan: {} wrist angles x {} latitudes = {} poses per arm", config.wrist_angles, config.latitudes, left.len());
+                println!(
+                    "scan plan: {} wrist angles x {} latitudes = {} poses per arm",
+                    config.wrist_angles,
+                    config.latitudes,
+                    left.len()
+                );
                 for j in 0..config.latitudes {
                     println!("  latitude {:>6.1}°", config.latitude(j).to_degrees());
                 }
                 let t = config.scan_point_m;
-                println!("object held at ({:.3}, {:.3}, {:.3}) m; camera {:.2} m away", t[0], t[1], t[2], config.camera_distance_m);
+                println!(
+                    "object held at ({:.3}, {:.3}, {:.3}) m; camera {:.2} m away",
+                    t[0], t[1], t[2], config.camera_distance_m
+                );
                 println!("use --json for the poses");
             }
         }
-        Command::Bench { which: BenchCommand::Sim { object, width, height, out, json } } => {
+        Command::Bench {
+            which:
+                BenchCommand::Sim {
+                    object,
+                    width,
+                    height,
+                    out,
+                    json,
+                },
+        } => {
             let tmp;
             let dir = match out {
                 Some(d) => d,
@@ -333,7 +393,12 @@ fn run(cli: Cli) -> Result<()> {
                     tmp.path().join("capture")
                 }
             };
-            let config = SimConfig { object, width, height, ..SimConfig::default() };
+            let config = SimConfig {
+                object,
+                width,
+                height,
+                ..SimConfig::default()
+            };
             let setup = Instant::now();
             let sim = Simulation::new(config)?;
             let setup_s = setup.elapsed().as_secs_f64();

@@ -1,0 +1,183 @@
+//! The command line as a user runs it: simulate, validate, export, plan, and
+//! clear failures on bad input.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn omniscan(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_omniscan"))
+        .args(args)
+        .output()
+        .expect("run omniscan")
+}
+
+fn tiny_capture(dir: &Path) {
+    let out = omniscan(&[
+        "sim",
+        "--object",
+        "builtin:remote",
+        "--out",
+        dir.to_str().unwrap(),
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--wrist-angles",
+        "3",
+        "--latitudes",
+        "2",
+        "--supersample",
+        "1",
+        "--seed",
+        "5",
+    ]);
+    assert!(
+        out.status.success(),
+        "sim failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+#[test]
+fn sim_validate_and_export_round_trip() {
+    let tmp = tempfile::tempdir().unwrap();
+    let capture = tmp.path().join("cap");
+    tiny_capture(&capture);
+
+    let out = omniscan(&["validate", capture.to_str().unwrap(), "--json"]);
+    assert!(out.status.success());
+    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(summary["left_frames"], 6);
+    assert_eq!(summary["right_frames"], 6);
+    assert_eq!(summary["empty_frames"], 12);
+    assert_eq!(summary["width"], 64);
+    assert_eq!(summary["height"], 48);
+    assert_eq!(summary["ground_truth"], true);
+
+    let ns = tmp.path().join("ns");
+    let out = omniscan(&[
+        "export-nerfstudio",
+        capture.to_str().unwrap(),
+        "--arm",
+        "right",
+        "--out",
+        ns.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let transforms: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(ns.join("transforms.json")).unwrap())
+            .unwrap();
+    let frames = transforms["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), 6);
+    assert_eq!(transforms["w"], 64);
+    for f in frames {
+        assert!(ns.join(f["file_path"].as_str().unwrap()).is_file());
+        assert!(ns.join(f["mask_path"].as_str().unwrap()).is_file());
+        // A rigid 4x4 with the OpenGL camera looking down its -z axis at the object (near the origin).
+        let m: Vec<Vec<f64>> = serde_json::from_value(f["transform_matrix"].clone()).unwrap();
+        let position = [m[0][3], m[1][3], m[2][3]];
+        let back = [m[0][2], m[1][2], m[2][2]];
+        let dist = position.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let cos = -(position[0] * back[0] + position[1] * back[1] + position[2] * back[2]) / dist;
+        assert!(
+            cos < -0.95,
+            "camera z axis should point away from the object (OpenGL), cos = {cos}"
+        );
+    }
+    let out = omniscan(&[
+        "export-nerfstudio",
+        capture.to_str().unwrap(),
+        "--arm",
+        "both",
+        "--out",
+        tmp.path().join("both").to_str().unwrap(),
+    ]);
+    assert!(out.status.success());
+}
+
+#[test]
+fn plan_json_has_the_paper_trajectory() {
+    let out = omniscan(&["plan", "--json"]);
+    assert!(out.status.success());
+    let plan: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(plan["left"].as_array().unwrap().len(), 100);
+    assert_eq!(plan["right"].as_array().unwrap().len(), 100);
+    let lat = plan["left"][99]["latitude_rad"]
+        .as_f64()
+        .unwrap()
+        .to_degrees();
+    assert!((lat - 70.0).abs() < 1e-9);
+    let out = omniscan(&[
+        "plan",
+        "--json",
+        "--wrist-angles",
+        "8",
+        "--latitudes",
+        "3",
+        "--latitude-min-deg",
+        "-20",
+    ]);
+    let plan: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(plan["left"].as_array().unwrap().len(), 24);
+    assert!(!omniscan(&["plan", "--latitudes", "0"]).status.success());
+}
+
+#[test]
+fn bad_inputs_fail_with_a_message_naming_the_problem() {
+    let tmp = tempfile::tempdir().unwrap();
+    let capture = tmp.path().join("cap");
+    tiny_capture(&capture);
+    std::fs::remove_file(capture.join("images/left_002.png")).unwrap();
+    let out = omniscan(&["validate", capture.to_str().unwrap(), "--json"]);
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("missing image") && err.contains("left_002.png"),
+        "{err}"
+    );
+    assert!(out.stdout.is_empty());
+
+    let out = omniscan(&["validate", tmp.path().join("nowhere").to_str().unwrap()]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("capture.json"));
+
+    let out = omniscan(&[
+        "sim",
+        "--object",
+        "builtin:teapot",
+        "--out",
+        tmp.path().join("t").to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("flashlight"),
+        "lists the built-ins"
+    );
+
+    let out = omniscan(&[
+        "sim",
+        "--object",
+        "builtin:remote",
+        "--defect",
+        "geometric:crack",
+        "--out",
+        tmp.path().join("d").to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("crack"));
+
+    std::fs::write(tmp.path().join("big.stl"), "solid x\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 100 0 0\nvertex 0 100 0\nendloop\nendfacet\nendsolid x\n").unwrap();
+    let out = omniscan(&[
+        "sim",
+        "--object",
+        tmp.path().join("big.stl").to_str().unwrap(),
+        "--out",
+        tmp.path().join("b").to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--object-scale"));
+}
