@@ -1,0 +1,493 @@
+//! ICP with Open3D's semantics, so users can compare numbers one to one
+//! (`registration_icp`, `registration_colored_icp`, `evaluate_registration`):
+//!
+//! - correspondences: each transformed source point's nearest target point
+//!   within `max_distance`;
+//! - `fitness` = share of source points with a correspondence, `inlier_rmse`
+//!   = RMS Euclidean distance over them (whatever the estimator);
+//! - loop: estimate an update from the current correspondences, apply it,
+//!   re-evaluate; stop when fitness and RMSE both change by less than the
+//!   criteria or after `max_iteration` updates.
+//!
+//! Estimators: point-to-point (closed form, Kabsch/Umeyama), point-to-plane
+//! (Gauss-Newton on (p − q)·n_q), and colored ICP (Park, Zhou, Koltun,
+//! "Colored Point Cloud Registration Revisited", ICCV 2017): a joint
+//! objective of the point-to-plane term and the difference between the
+//! source intensity and the target's intensity extrapolated along its
+//! tangent-plane colour gradient, weighted λ and 1 − λ. Robust kernels
+//! reweight residuals (iteratively reweighted least squares). Sums are
+//! reduced in a fixed order, so results do not depend on thread timing.
+
+use nalgebra::{Cholesky, Matrix3, Matrix6, Point3, Rotation3, SVD, Translation3, UnitQuaternion, Vector3, Vector6};
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::neighbors::Neighbors;
+use crate::{PointCloud, RegisterError};
+use omniscan_core::Pose;
+
+/// When to stop iterating (Open3D's `ICPConvergenceCriteria`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Criteria {
+    pub relative_fitness: f64,
+    pub relative_rmse: f64,
+    pub max_iteration: usize,
+}
+
+impl Default for Criteria {
+    fn default() -> Self {
+        Criteria { relative_fitness: 1e-6, relative_rmse: 1e-6, max_iteration: 30 }
+    }
+}
+
+/// A robust loss for the residuals.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub enum Kernel {
+    L2,
+    Huber(f64),
+    Tukey(f64),
+    Cauchy(f64),
+}
+
+impl Kernel {
+    fn weight(self, r: f64) -> f64 {
+        match self {
+            Kernel::L2 => 1.0,
+            Kernel::Huber(k) => {
+                if r.abs() <= k { 1.0 } else { k / r.abs() }
+            }
+            Kernel::Tukey(k) => {
+                if r.abs() <= k { (1.0 - (r / k).powi(2)).powi(2) } else { 0.0 }
+            }
+            Kernel::Cauchy(k) => 1.0 / (1.0 + (r / k).powi(2)),
+        }
+    }
+}
+
+/// How each ICP iteration computes its update.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub enum Estimator {
+    PointToPoint,
+    PointToPlane,
+    /// `lambda_geometric` in [0, 1] weighs the geometric term (Open3D default 0.968).
+    Colored { lambda_geometric: f64 },
+}
+
+impl Estimator {
+    pub fn name(&self) -> &'static str {
+        match self {
+            Estimator::PointToPoint => "icp",
+            Estimator::PointToPlane => "plane",
+            Estimator::Colored { .. } => "colored",
+        }
+    }
+    pub const COLORED: Estimator = Estimator::Colored { lambda_geometric: 0.968 };
+}
+
+/// Result of a registration (Open3D's `RegistrationResult`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Registration {
+    /// Maps source points into the target's frame.
+    #[serde(serialize_with = "serialize_pose")]
+    pub transformation: Pose,
+    pub fitness: f64,
+    pub inlier_rmse: f64,
+    /// Number of correspondences at the final evaluation.
+    pub correspondences: usize,
+    /// Updates applied.
+    pub iterations: usize,
+}
+
+fn serialize_pose<S: serde::Serializer>(p: &Pose, s: S) -> Result<S::Ok, S::Error> {
+    omniscan_core::geometry::pose_to_rows(p).serialize(s)
+}
+
+impl Registration {
+    /// Open3D's ranking: higher fitness, then lower RMSE.
+    pub fn is_better_than(&self, other: &Registration) -> bool {
+        self.fitness > other.fitness || (self.fitness == other.fitness && self.inlier_rmse < other.inlier_rmse)
+    }
+}
+
+/// A target cloud prepared for repeated registration.
+pub struct Target<'a> {
+    pub cloud: &'a PointCloud,
+    pub neighbors: Neighbors,
+}
+
+impl<'a> Target<'a> {
+    pub fn new(cloud: &'a PointCloud) -> Target<'a> {
+        Target { cloud, neighbors: Neighbors::new(&cloud.points) }
+    }
+}
+
+const CHUNK: usize = 2048;
+
+/// Correspondences (source index, target index, distance²) of `points` in `target`.
+fn correspondences(points: &[Point3<f64>], target: &Target, max_distance: f64) -> Vec<(usize, usize, f64)> {
+    let max2 = max_distance * max_distance;
+    points
+        .par_chunks(CHUNK)
+        .enumerate()
+        .map(|(c, chunk)| {
+            chunk
+                .iter()
+                .enumerate()
+                .filter_map(|(k, p)| {
+                    let (j, d2) = target.neighbors.nearest(p)?;
+                    (d2 <= max2).then_some((c * CHUNK + k, j, d2))
+                })
+                .collect::<Vec<_>>()
+        })
+        .collect::<Vec<_>>()
+        .concat()
+}
+
+fn score(n_source: usize, corr: &[(usize, usize, f64)]) -> (f64, f64) {
+    if corr.is_empty() {
+        return (0.0, 0.0);
+    }
+    let sum: f64 = corr.iter().map(|c| c.2).sum();
+    (corr.len() as f64 / n_source as f64, (sum / corr.len() as f64).sqrt())
+}
+
+/// Fitness and RMSE of `source` moved by `transformation` against `target`
+/// (Open3D's `evaluate_registration`).
+pub fn evaluate(source: &PointCloud, target: &Target, max_distance: f64, transformation: &Pose) -> Registration {
+    let moved: Vec<Point3<f64>> = source.points.iter().map(|p| transformation * p).collect();
+    let corr = correspondences(&moved, target, max_distance);
+    let (fitness, inlier_rmse) = score(source.len(), &corr);
+    Registration { transformation: *transformation, fitness, inlier_rmse, correspondences: corr.len(), iterations: 0 }
+}
+
+/// Rotation Rz(γ)·Ry(β)·Rx(α) and translation from ξ = (α, β, γ, tx, ty, tz).
+fn pose_from_twist(x: &Vector6<f64>) -> Pose {
+    let r = Rotation3::from_axis_angle(&Vector3::z_axis(), x[2])
+        * Rotation3::from_axis_angle(&Vector3::y_axis(), x[1])
+        * Rotation3::from_axis_angle(&Vector3::x_axis(), x[0]);
+    Pose::from_parts(Translation3::new(x[3], x[4], x[5]), UnitQuaternion::from_rotation_matrix(&r))
+}
+
+/// Solves JᵀJ ξ = −Jᵀr; the identity where the system is singular (as Open3D does).
+fn gauss_newton_step(jtj: &Matrix6<f64>, jtr: &Vector6<f64>) -> Pose {
+    match Cholesky::new(*jtj) {
+        Some(ch) => {
+            let x = ch.solve(&(-jtr));
+            if x.iter().all(|v| v.is_finite()) { pose_from_twist(&x) } else { Pose::identity() }
+        }
+        None => Pose::identity(),
+    }
+}
+
+/// Accumulates JᵀWJ and JᵀWr over chunks of correspondences, in order.
+fn accumulate<F>(corr: &[(usize, usize, f64)], rows: F) -> (Matrix6<f64>, Vector6<f64>)
+where
+    F: Fn(usize, usize, &mut dyn FnMut(Vector6<f64>, f64)) + Sync,
+{
+    let parts: Vec<(Matrix6<f64>, Vector6<f64>)> = corr
+        .par_chunks(CHUNK)
+        .map(|chunk| {
+            let mut jtj = Matrix6::zeros();
+            let mut jtr = Vector6::zeros();
+            for &(i, j, _) in chunk {
+                rows(i, j, &mut |jac, r| {
+                    jtj += jac * jac.transpose();
+                    jtr += jac * r;
+                });
+            }
+            (jtj, jtr)
+        })
+        .collect();
+    parts.into_iter().fold((Matrix6::zeros(), Vector6::zeros()), |(a, b), (c, d)| (a + c, b + d))
+}
+
+/// Closed-form rigid transform minimising Σ‖q − (R p + t)‖² (Kabsch).
+pub fn kabsch(pairs: &[(Point3<f64>, Point3<f64>)]) -> Pose {
+    if pairs.is_empty() {
+        return Pose::identity();
+    }
+    let n = pairs.len() as f64;
+    let ps: Vector3<f64> = pairs.iter().map(|p| p.0.coords).sum::<Vector3<f64>>() / n;
+    let qs: Vector3<f64> = pairs.iter().map(|p| p.1.coords).sum::<Vector3<f64>>() / n;
+    let mut h = Matrix3::zeros();
+    for (p, q) in pairs {
+        h += (p.coords - ps) * (q.coords - qs).transpose();
+    }
+    let svd = SVD::new(h, true, true);
+    let (Some(u), Some(vt)) = (svd.u, svd.v_t) else { return Pose::identity() };
+    let v = vt.transpose();
+    let d = (v * u.transpose()).determinant().signum();
+    let r = v * Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, d)) * u.transpose();
+    let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(r));
+    let t = qs - rotation * ps;
+    Pose::from_parts(Translation3::from(t), rotation)
+}
+
+/// Per-target-point intensity gradients in the tangent plane (colored ICP's
+/// precomputation: least squares over up to 30 neighbours within
+/// `2 · max_distance`, with the orthogonality constraint; zero with fewer
+/// than four neighbours).
+pub fn color_gradients(target: &Target, max_distance: f64) -> Vec<Vector3<f64>> {
+    let cloud = target.cloud;
+    (0..cloud.len())
+        .into_par_iter()
+        .map(|i| {
+            let p = cloud.points[i];
+            let n = cloud.normals[i];
+            let it = cloud.intensity(i);
+            let nbrs = target.neighbors.hybrid(&p, 2.0 * max_distance, 30);
+            let nn = nbrs.len();
+            if nn < 4 {
+                return Vector3::zeros();
+            }
+            let mut ata = Matrix3::zeros();
+            let mut atb = Vector3::zeros();
+            for &(j, _) in nbrs.iter().skip(1) {
+                let q = cloud.points[j];
+                let proj = q - n * (q - p).dot(&n);
+                let a = proj - p;
+                ata += a * a.transpose();
+                atb += a * (cloud.intensity(j) - it);
+            }
+            let c = n * (nn - 1) as f64;
+            ata += c * c.transpose();
+            match Cholesky::new(ata) {
+                Some(ch) => ch.solve(&atb),
+                None => Vector3::zeros(),
+            }
+        })
+        .collect()
+}
+
+/// Runs ICP from `init`. Point-to-plane and colored ICP need target normals;
+/// colored ICP needs colours on both clouds.
+pub fn icp(
+    source: &PointCloud,
+    target: &Target,
+    max_distance: f64,
+    init: &Pose,
+    estimator: Estimator,
+    kernel: Kernel,
+    criteria: &Criteria,
+) -> Result<Registration, RegisterError> {
+    source.validate("source")?;
+    target.cloud.validate("target")?;
+    if !(max_distance.is_finite() && max_distance > 0.0) {
+        return Err(RegisterError::Invalid(format!("the correspondence distance must be positive, got {max_distance}")));
+    }
+    let needs_normals = !matches!(estimator, Estimator::PointToPoint);
+    if needs_normals && !target.cloud.has_normals() {
+        return Err(RegisterError::Invalid(format!("{} ICP needs target normals; estimate them first", estimator.name())));
+    }
+    let gradients = match estimator {
+        Estimator::Colored { lambda_geometric } => {
+            if !source.has_colors() || !target.cloud.has_colors() {
+                return Err(RegisterError::Invalid("colored ICP needs colours on both point clouds".into()));
+            }
+            if !(0.0..=1.0).contains(&lambda_geometric) {
+                return Err(RegisterError::Invalid(format!("lambda_geometric must be in [0, 1], got {lambda_geometric}")));
+            }
+            color_gradients(target, max_distance)
+        }
+        _ => Vec::new(),
+    };
+    let tc = target.cloud;
+    let mut transformation = *init;
+    let mut moved: Vec<Point3<f64>> = source.points.iter().map(|p| transformation * p).collect();
+    let mut corr = correspondences(&moved, target, max_distance);
+    let (mut fitness, mut rmse) = score(source.len(), &corr);
+    let mut iterations = 0;
+    for _ in 0..criteria.max_iteration {
+        let delta = match estimator {
+            Estimator::PointToPoint => {
+                let pairs: Vec<(Point3<f64>, Point3<f64>)> = corr.iter().map(|&(i, j, _)| (moved[i], tc.points[j])).collect();
+                kabsch(&pairs)
+            }
+            Estimator::PointToPlane => {
+                let (jtj, jtr) = accumulate(&corr, |i, j, emit| {
+                    let (p, q, n) = (moved[i], tc.points[j], tc.normals[j]);
+                    let r = (p - q).dot(&n);
+                    let w = kernel.weight(r).sqrt();
+                    let c = p.coords.cross(&n);
+                    emit(Vector6::new(c.x, c.y, c.z, n.x, n.y, n.z) * w, r * w);
+                });
+                gauss_newton_step(&jtj, &jtr)
+            }
+            Estimator::Colored { lambda_geometric } => {
+                let (sg, sc) = (lambda_geometric.sqrt(), (1.0 - lambda_geometric).sqrt());
+                let (jtj, jtr) = accumulate(&corr, |i, j, emit| {
+                    let (s, q, n) = (moved[i], tc.points[j], tc.normals[j]);
+                    let d = gradients[j];
+                    let rg = (s - q).dot(&n);
+                    let wg = kernel.weight(rg).sqrt();
+                    let c = s.coords.cross(&n);
+                    emit(Vector6::new(c.x, c.y, c.z, n.x, n.y, n.z) * (sg * wg), rg * sg * wg);
+                    let projected = s - n * rg;
+                    let predicted = tc.intensity(j) + d.dot(&(projected - q));
+                    let rc = source.intensity(i) - predicted;
+                    let m = Matrix3::identity() - n * n.transpose();
+                    let dm = -(m * d);
+                    let wc = kernel.weight(rc).sqrt();
+                    let c = s.coords.cross(&dm);
+                    emit(Vector6::new(c.x, c.y, c.z, dm.x, dm.y, dm.z) * (sc * wc), rc * sc * wc);
+                });
+                gauss_newton_step(&jtj, &jtr)
+            }
+        };
+        transformation = delta * transformation;
+        for (m, p) in moved.iter_mut().zip(&source.points) {
+            *m = transformation * p;
+        }
+        iterations += 1;
+        corr = correspondences(&moved, target, max_distance);
+        let (f, r) = score(source.len(), &corr);
+        let converged = (fitness - f).abs() < criteria.relative_fitness && (rmse - r).abs() < criteria.relative_rmse;
+        fitness = f;
+        rmse = r;
+        if converged {
+            break;
+        }
+    }
+    Ok(Registration { transformation, fitness, inlier_rmse: rmse, correspondences: corr.len(), iterations })
+}
+
+/// Colored ICP over a coarse-to-fine schedule of voxel sizes (Open3D's
+/// tutorial: voxels [v, v/2, v/4], iterations [50, 30, 14]): at each scale both
+/// clouds are downsampled, normals estimated (radius 2·voxel, 30 neighbours)
+/// and colored ICP run with the voxel size as correspondence distance.
+pub fn multiscale_colored_icp(
+    source: &PointCloud,
+    target: &PointCloud,
+    init: &Pose,
+    voxels: &[f64],
+    iterations: &[usize],
+) -> Result<Registration, RegisterError> {
+    let mut current = *init;
+    let mut last = None;
+    for (&voxel, &iters) in voxels.iter().zip(iterations) {
+        let mut s = crate::preprocess::voxel_downsample(source, voxel);
+        let mut t = crate::preprocess::voxel_downsample(target, voxel);
+        crate::preprocess::estimate_normals(&mut s, 2.0 * voxel, 30);
+        crate::preprocess::estimate_normals(&mut t, 2.0 * voxel, 30);
+        let tt = Target::new(&t);
+        let criteria = Criteria { max_iteration: iters, ..Criteria::default() };
+        let r = icp(&s, &tt, voxel, &current, Estimator::COLORED, Kernel::L2, &criteria)?;
+        current = r.transformation;
+        last = Some(r);
+    }
+    last.ok_or_else(|| RegisterError::Invalid("multi-scale ICP needs at least one scale".into()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// A wavy, coloured surface patch: enough structure to constrain all six degrees of freedom.
+    fn surface(n: usize, seed: u64) -> PointCloud {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let mut c = PointCloud::default();
+        for _ in 0..n {
+            let (u, v): (f64, f64) = (rng.random::<f64>() * 0.2 - 0.1, rng.random::<f64>() * 0.2 - 0.1);
+            let z = 0.02 * (u * 40.0).sin() * (v * 25.0).cos() + 0.01 * (u * 13.0 + v * 7.0).sin();
+            c.points.push(Point3::new(u, v, z));
+            let t = (0.5 + 0.5 * (u * 60.0).sin() * (v * 45.0).cos()) as f32;
+            c.colors.push([t, 0.3 + 0.4 * t, 1.0 - t]);
+        }
+        c
+    }
+
+    #[test]
+    fn kabsch_recovers_a_rigid_transform_exactly() {
+        let c = surface(200, 1);
+        let t = Pose::new(Vector3::new(0.1, -0.3, 0.05), Vector3::new(0.4, -1.2, 2.0));
+        let pairs: Vec<_> = c.points.iter().map(|p| (*p, t * p)).collect();
+        let est = kabsch(&pairs);
+        let (a, d) = omniscan_core::geometry::pose_difference(&est, &t);
+        assert!(a < 1e-9 && d < 1e-9);
+    }
+
+    #[test]
+    fn identical_clouds_under_random_transforms_align_exactly() {
+        let target = surface(3000, 2);
+        let mut t_cloud = target.clone();
+        crate::preprocess::estimate_normals(&mut t_cloud, 0.01, 30);
+        let tt = Target::new(&t_cloud);
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        for _ in 0..5 {
+            let axis = Vector3::new(rng.random::<f64>() - 0.5, rng.random::<f64>() - 0.5, rng.random::<f64>() - 0.5).normalize();
+            let truth = Pose::from_parts(
+                Translation3::new(0.004, -0.003, 0.002),
+                UnitQuaternion::from_axis_angle(&nalgebra::Unit::new_normalize(axis), 3f64.to_radians()),
+            );
+            let source = target.transformed(&truth.inverse());
+            for est in [Estimator::PointToPoint, Estimator::PointToPlane, Estimator::COLORED] {
+                let crit = Criteria { max_iteration: 60, ..Criteria::default() };
+                let r = icp(&source, &tt, 0.02, &Pose::identity(), est, Kernel::L2, &crit).unwrap();
+                let (a, d) = omniscan_core::geometry::pose_difference(&r.transformation, &truth);
+                assert!(a.to_degrees() < 0.01 && d < 1e-4, "{est:?}: {:.4}° {:.2e} m", a.to_degrees(), d);
+                assert!(r.fitness > 0.999 && r.inlier_rmse < 1e-5, "{est:?}: {r:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn fitness_and_rmse_follow_open3d_definitions() {
+        let target = PointCloud { points: vec![Point3::origin(), Point3::new(1.0, 0.0, 0.0)], ..Default::default() };
+        let source = PointCloud {
+            points: vec![Point3::new(0.0, 0.1, 0.0), Point3::new(1.0, 0.0, 0.3), Point3::new(5.0, 0.0, 0.0)],
+            ..Default::default()
+        };
+        let r = evaluate(&source, &Target::new(&target), 0.5, &Pose::identity());
+        assert!((r.fitness - 2.0 / 3.0).abs() < 1e-12);
+        assert!((r.inlier_rmse - ((0.01 + 0.09) / 2f64).sqrt()).abs() < 1e-12);
+        // No overlap is a result, not an error.
+        let far = source.transformed(&Pose::translation(100.0, 0.0, 0.0));
+        let r = icp(&far, &Target::new(&target), 0.5, &Pose::identity(), Estimator::PointToPoint, Kernel::L2, &Criteria::default()).unwrap();
+        assert_eq!((r.fitness, r.inlier_rmse), (0.0, 0.0));
+    }
+
+    #[test]
+    fn clear_errors_for_bad_inputs() {
+        let c = surface(100, 3);
+        let tt = Target::new(&c);
+        let crit = Criteria::default();
+        let err = icp(&c, &tt, 0.1, &Pose::identity(), Estimator::PointToPlane, Kernel::L2, &crit).unwrap_err().to_string();
+        assert!(err.contains("normals"), "{err}");
+        let mut with_normals = c.clone();
+        crate::preprocess::estimate_normals(&mut with_normals, 0.02, 30);
+        let mut grey = c.clone();
+        grey.colors.clear();
+        let tn = Target::new(&with_normals);
+        let err = icp(&grey, &tn, 0.1, &Pose::identity(), Estimator::COLORED, Kernel::L2, &crit).unwrap_err().to_string();
+        assert!(err.contains("colours"), "{err}");
+        let empty = PointCloud::default();
+        assert!(icp(&empty, &tt, 0.1, &Pose::identity(), Estimator::PointToPoint, Kernel::L2, &crit).unwrap_err().to_string().contains("empty"));
+        let mut nan = c.clone();
+        nan.points[5].x = f64::NAN;
+        assert!(icp(&nan, &tt, 0.1, &Pose::identity(), Estimator::PointToPoint, Kernel::L2, &crit).unwrap_err().to_string().contains("NaN"));
+        assert!(icp(&c, &tt, 0.0, &Pose::identity(), Estimator::PointToPoint, Kernel::L2, &crit).is_err());
+    }
+
+    #[test]
+    fn robust_kernels_resist_outliers() {
+        let target = surface(3000, 4);
+        let mut tn = target.clone();
+        crate::preprocess::estimate_normals(&mut tn, 0.01, 30);
+        let tt = Target::new(&tn);
+        let truth = Pose::new(Vector3::new(0.003, 0.002, -0.001), Vector3::new(0.02, -0.03, 0.04));
+        let mut source = target.transformed(&truth.inverse());
+        // A tenth of the points become junk 1-2 cm off the surface.
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        for p in source.points.iter_mut().step_by(10) {
+            p.z += 0.01 + 0.01 * rng.random::<f64>();
+        }
+        let crit = Criteria { max_iteration: 60, ..Criteria::default() };
+        let robust = icp(&source, &tt, 0.03, &Pose::identity(), Estimator::PointToPlane, Kernel::Tukey(0.003), &crit).unwrap();
+        let plain = icp(&source, &tt, 0.03, &Pose::identity(), Estimator::PointToPlane, Kernel::L2, &crit).unwrap();
+        let err = |r: &Registration| omniscan_core::geometry::pose_difference(&r.transformation, &truth).1;
+        assert!(err(&robust) < 2e-4, "{}", err(&robust));
+        assert!(err(&robust) < err(&plain) / 3.0, "{} vs {}", err(&robust), err(&plain));
+    }
+}
