@@ -4,9 +4,11 @@
 //! registration, and the paper's rule for merging the two arms' scans.
 
 pub mod cloud;
+pub mod fpfh;
 pub mod icp;
 pub mod neighbors;
 pub mod preprocess;
+pub mod teaser;
 
 use std::path::{Path, PathBuf};
 
