@@ -51,16 +51,32 @@ impl PointCloud {
     /// Checks sizes and finiteness; `what` names the cloud in errors.
     pub fn validate(&self, what: &str) -> Result<(), RegisterError> {
         if self.points.is_empty() {
-            return Err(RegisterError::Invalid(format!("{what}: the point cloud is empty")));
+            return Err(RegisterError::Invalid(format!(
+                "{what}: the point cloud is empty"
+            )));
         }
-        if let Some(i) = self.points.iter().position(|p| !p.coords.iter().all(|c| c.is_finite())) {
-            return Err(RegisterError::Invalid(format!("{what}: point {i} has a NaN or infinite coordinate")));
+        if let Some(i) = self
+            .points
+            .iter()
+            .position(|p| !p.coords.iter().all(|c| c.is_finite()))
+        {
+            return Err(RegisterError::Invalid(format!(
+                "{what}: point {i} has a NaN or infinite coordinate"
+            )));
         }
         if !self.colors.is_empty() && self.colors.len() != self.points.len() {
-            return Err(RegisterError::Invalid(format!("{what}: {} colours for {} points", self.colors.len(), self.points.len())));
+            return Err(RegisterError::Invalid(format!(
+                "{what}: {} colours for {} points",
+                self.colors.len(),
+                self.points.len()
+            )));
         }
         if !self.normals.is_empty() && self.normals.len() != self.points.len() {
-            return Err(RegisterError::Invalid(format!("{what}: {} normals for {} points", self.normals.len(), self.points.len())));
+            return Err(RegisterError::Invalid(format!(
+                "{what}: {} normals for {} points",
+                self.normals.len(),
+                self.points.len()
+            )));
         }
         Ok(())
     }
@@ -78,15 +94,25 @@ impl PointCloud {
     pub fn select(&self, indices: &[usize]) -> PointCloud {
         PointCloud {
             points: indices.iter().map(|&i| self.points[i]).collect(),
-            colors: if self.has_colors() { indices.iter().map(|&i| self.colors[i]).collect() } else { vec![] },
-            normals: if self.has_normals() { indices.iter().map(|&i| self.normals[i]).collect() } else { vec![] },
+            colors: if self.has_colors() {
+                indices.iter().map(|&i| self.colors[i]).collect()
+            } else {
+                vec![]
+            },
+            normals: if self.has_normals() {
+                indices.iter().map(|&i| self.normals[i]).collect()
+            } else {
+                vec![]
+            },
         }
     }
 
     /// Appends another cloud; attributes survive only if both have them.
     pub fn extend(&mut self, other: &PointCloud) {
-        let colors = self.has_colors() && other.has_colors() || self.is_empty() && other.has_colors();
-        let normals = self.has_normals() && other.has_normals() || self.is_empty() && other.has_normals();
+        let colors =
+            self.has_colors() && other.has_colors() || self.is_empty() && other.has_colors();
+        let normals =
+            self.has_normals() && other.has_normals() || self.is_empty() && other.has_normals();
         self.points.extend_from_slice(&other.points);
         if colors {
             self.colors.extend_from_slice(&other.colors);
@@ -114,7 +140,11 @@ impl PointCloud {
             lo = lo.inf(p);
             hi = hi.sup(p);
         }
-        if self.points.is_empty() { 0.0 } else { (hi - lo).norm() }
+        if self.points.is_empty() {
+            0.0
+        } else {
+            (hi - lo).norm()
+        }
     }
 }
 
@@ -129,13 +159,17 @@ pub struct SplatFilter {
 
 impl Default for SplatFilter {
     fn default() -> Self {
-        SplatFilter { min_opacity: 0.3, max_scale_over_median: 6.0 }
+        SplatFilter {
+            min_opacity: 0.3,
+            max_scale_over_median: 6.0,
+        }
     }
 }
 
 /// Whether a PLY file is a 3D Gaussian Splat model (has opacity and scales).
 pub fn is_splat_ply(ply: &PlyFile) -> bool {
-    ply.element("vertex").is_some_and(|v| v.scalar("opacity").is_some() && v.scalar("scale_0").is_some())
+    ply.element("vertex")
+        .is_some_and(|v| v.scalar("opacity").is_some() && v.scalar("scale_0").is_some())
 }
 
 fn sigmoid(x: f64) -> f64 {
@@ -145,19 +179,29 @@ fn sigmoid(x: f64) -> f64 {
 /// Reads a point cloud file (`.ply`, `.pcd`, `.xyz`, `.xyzn`, `.xyzrgb`).
 /// A splat PLY gives its filtered centres.
 pub fn read_cloud(path: &Path) -> Result<PointCloud, RegisterError> {
-    let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase();
     let cloud = match ext.as_str() {
         "ply" => {
             let ply = omniscan_core::ply::read(path)?;
             if is_splat_ply(&ply) {
-                splat_centres(&ply, &SplatFilter::default()).map_err(|e| RegisterError::file(path, e))?
+                splat_centres(&ply, &SplatFilter::default())
+                    .map_err(|e| RegisterError::file(path, e))?
             } else {
                 cloud_from_ply(&ply).map_err(|e| RegisterError::file(path, e))?
             }
         }
         "pcd" => read_pcd(path)?,
         "xyz" | "xyzn" | "xyzrgb" | "txt" => read_xyz(path, &ext)?,
-        _ => return Err(RegisterError::file(path, "unsupported point cloud format: use .ply, .pcd, .xyz, .xyzn or .xyzrgb")),
+        _ => {
+            return Err(RegisterError::file(
+                path,
+                "unsupported point cloud format: use .ply, .pcd, .xyz, .xyzn or .xyzrgb",
+            ));
+        }
     };
     cloud.validate(&path.display().to_string())?;
     Ok(cloud)
@@ -171,18 +215,38 @@ pub fn cloud_from_ply(ply: &PlyFile) -> Result<PointCloud, String> {
     let (Some(x), Some(y), Some(z)) = (v.scalar("x"), v.scalar("y"), v.scalar("z")) else {
         return Err("PLY vertices need x, y and z".into());
     };
-    let mut cloud = PointCloud { points: (0..v.count).map(|i| Point3::new(x[i], y[i], z[i])).collect(), ..Default::default() };
+    let mut cloud = PointCloud {
+        points: (0..v.count)
+            .map(|i| Point3::new(x[i], y[i], z[i]))
+            .collect(),
+        ..Default::default()
+    };
     if let (Some(r), Some(g), Some(b)) = (v.scalar("red"), v.scalar("green"), v.scalar("blue")) {
-        let integer = v.properties.iter().find(|p| p.name == "red").is_some_and(|p| p.scalar != ScalarType::F32 && p.scalar != ScalarType::F64);
+        let integer = v
+            .properties
+            .iter()
+            .find(|p| p.name == "red")
+            .is_some_and(|p| p.scalar != ScalarType::F32 && p.scalar != ScalarType::F64);
         let scale = if integer { 255.0 } else { 1.0 };
-        cloud.colors = (0..v.count).map(|i| [r[i], g[i], b[i]].map(|c| (c / scale).clamp(0.0, 1.0) as f32)).collect();
-    } else if let (Some(r), Some(g), Some(b)) = (v.scalar("f_dc_0"), v.scalar("f_dc_1"), v.scalar("f_dc_2")) {
-        cloud.colors = (0..v.count).map(|i| [r[i], g[i], b[i]].map(|c| (0.5 + SH_C0 * c).clamp(0.0, 1.0) as f32)).collect();
+        cloud.colors = (0..v.count)
+            .map(|i| [r[i], g[i], b[i]].map(|c| (c / scale).clamp(0.0, 1.0) as f32))
+            .collect();
+    } else if let (Some(r), Some(g), Some(b)) =
+        (v.scalar("f_dc_0"), v.scalar("f_dc_1"), v.scalar("f_dc_2"))
+    {
+        cloud.colors = (0..v.count)
+            .map(|i| [r[i], g[i], b[i]].map(|c| (0.5 + SH_C0 * c).clamp(0.0, 1.0) as f32))
+            .collect();
     }
     if let (Some(nx), Some(ny), Some(nz)) = (v.scalar("nx"), v.scalar("ny"), v.scalar("nz")) {
-        let normals: Vec<Vector3<f64>> = (0..v.count).map(|i| Vector3::new(nx[i], ny[i], nz[i])).collect();
+        let normals: Vec<Vector3<f64>> = (0..v.count)
+            .map(|i| Vector3::new(nx[i], ny[i], nz[i]))
+            .collect();
         if normals.iter().any(|n| n.norm_squared() > 0.0) {
-            cloud.normals = normals.into_iter().map(|n| if n.norm() > 0.0 { n.normalize() } else { n }).collect();
+            cloud.normals = normals
+                .into_iter()
+                .map(|n| if n.norm() > 0.0 { n.normalize() } else { n })
+                .collect();
         }
     }
     Ok(cloud)
@@ -197,21 +261,36 @@ pub fn splat_centres(ply: &PlyFile, filter: &SplatFilter) -> Result<PointCloud, 
         .iter()
         .map(|n| v.scalar(n).ok_or_else(|| format!("splat PLY has no {n}")))
         .collect::<Result<_, _>>()?;
-    let largest: Vec<f64> = (0..v.count).map(|i| scales.iter().map(|s| s[i]).fold(f64::NEG_INFINITY, f64::max).exp()).collect();
+    let largest: Vec<f64> = (0..v.count)
+        .map(|i| {
+            scales
+                .iter()
+                .map(|s| s[i])
+                .fold(f64::NEG_INFINITY, f64::max)
+                .exp()
+        })
+        .collect();
     let mut sorted: Vec<f64> = largest.iter().copied().filter(|s| s.is_finite()).collect();
     sorted.sort_by(f64::total_cmp);
-    let median = sorted.get(sorted.len() / 2).copied().unwrap_or(f64::INFINITY);
+    let median = sorted
+        .get(sorted.len() / 2)
+        .copied()
+        .unwrap_or(f64::INFINITY);
     let keep: Vec<usize> = (0..v.count)
         .filter(|&i| {
             let ok_opacity = sigmoid(opacity[i]) >= filter.min_opacity;
-            let ok_size = largest[i].is_finite() && largest[i] <= filter.max_scale_over_median * median;
+            let ok_size =
+                largest[i].is_finite() && largest[i] <= filter.max_scale_over_median * median;
             ok_opacity && ok_size && cloud.points[i].coords.iter().all(|c| c.is_finite())
         })
         .collect();
     let mut out = cloud.select(&keep);
     out.normals.clear();
     if out.is_empty() {
-        return Err(format!("no splat passes the filter (opacity >= {}, size <= {} x median)", filter.min_opacity, filter.max_scale_over_median));
+        return Err(format!(
+            "no splat passes the filter (opacity >= {}, size <= {} x median)",
+            filter.min_opacity, filter.max_scale_over_median
+        ));
     }
     Ok(out)
 }
@@ -221,7 +300,11 @@ pub fn write_ply(path: &Path, cloud: &PointCloud) -> Result<(), RegisterError> {
     let n = cloud.len();
     let mut properties = Vec::new();
     let mut columns = Vec::new();
-    let prop = |name: &str, scalar| Property { name: name.into(), scalar, list_count: None };
+    let prop = |name: &str, scalar| Property {
+        name: name.into(),
+        scalar,
+        list_count: None,
+    };
     for (k, name) in ["x", "y", "z"].iter().enumerate() {
         properties.push(prop(name, ScalarType::F64));
         columns.push(Column::Scalar(cloud.points.iter().map(|p| p[k]).collect()));
@@ -235,20 +318,32 @@ pub fn write_ply(path: &Path, cloud: &PointCloud) -> Result<(), RegisterError> {
     if cloud.has_colors() {
         for (k, name) in ["red", "green", "blue"].iter().enumerate() {
             properties.push(prop(name, ScalarType::U8));
-            columns.push(Column::Scalar(cloud.colors.iter().map(|c| (c[k] as f64 * 255.0).round().clamp(0.0, 255.0)).collect()));
+            columns.push(Column::Scalar(
+                cloud
+                    .colors
+                    .iter()
+                    .map(|c| (c[k] as f64 * 255.0).round().clamp(0.0, 255.0))
+                    .collect(),
+            ));
         }
     }
     let file = PlyFile {
         format: Format::BinaryLittleEndian,
         comments: vec!["written by omniscan".into()],
-        elements: vec![Element { name: "vertex".into(), count: n, properties, columns }],
+        elements: vec![Element {
+            name: "vertex".into(),
+            count: n,
+            properties,
+            columns,
+        }],
     };
     omniscan_core::io::write_atomic(path, &omniscan_core::ply::to_binary_le(&file))?;
     Ok(())
 }
 
 fn read_xyz(path: &Path, ext: &str) -> Result<PointCloud, RegisterError> {
-    let text = std::fs::read_to_string(path).map_err(|e| RegisterError::file(path, e.to_string()))?;
+    let text =
+        std::fs::read_to_string(path).map_err(|e| RegisterError::file(path, e.to_string()))?;
     let mut cloud = PointCloud::default();
     for (line_no, line) in text.lines().enumerate() {
         let line = line.trim();
@@ -259,15 +354,28 @@ fn read_xyz(path: &Path, ext: &str) -> Result<PointCloud, RegisterError> {
             .split_whitespace()
             .map(str::parse)
             .collect::<Result<_, _>>()
-            .map_err(|_| RegisterError::file(path, format!("line {}: not a list of numbers: `{line}`", line_no + 1)))?;
+            .map_err(|_| {
+                RegisterError::file(
+                    path,
+                    format!("line {}: not a list of numbers: `{line}`", line_no + 1),
+                )
+            })?;
         if v.len() < 3 {
-            return Err(RegisterError::file(path, format!("line {}: needs at least x y z", line_no + 1)));
+            return Err(RegisterError::file(
+                path,
+                format!("line {}: needs at least x y z", line_no + 1),
+            ));
         }
         cloud.points.push(Point3::new(v[0], v[1], v[2]));
         match ext {
             "xyzn" if v.len() >= 6 => cloud.normals.push(Vector3::new(v[3], v[4], v[5])),
             "xyzrgb" if v.len() >= 6 => cloud.colors.push([v[3], v[4], v[5]].map(|c| c as f32)),
-            "xyzn" | "xyzrgb" => return Err(RegisterError::file(path, format!("line {}: needs 6 columns", line_no + 1))),
+            "xyzn" | "xyzrgb" => {
+                return Err(RegisterError::file(
+                    path,
+                    format!("line {}: needs 6 columns", line_no + 1),
+                ));
+            }
             _ => {}
         }
     }
@@ -296,10 +404,16 @@ fn lzf_decompress(input: &[u8], out_len: usize) -> Result<Vec<u8>, String> {
         } else {
             let mut len = ctrl >> 5;
             if len == 7 {
-                len += *input.get(i).ok_or("compressed data ends inside a back-reference")? as usize;
+                len += *input
+                    .get(i)
+                    .ok_or("compressed data ends inside a back-reference")?
+                    as usize;
                 i += 1;
             }
-            let low = *input.get(i).ok_or("compressed data ends inside a back-reference")? as usize;
+            let low = *input
+                .get(i)
+                .ok_or("compressed data ends inside a back-reference")?
+                as usize;
             i += 1;
             let back = ((ctrl & 0x1f) << 8) + low + 1;
             if back > out.len() {
@@ -312,7 +426,10 @@ fn lzf_decompress(input: &[u8], out_len: usize) -> Result<Vec<u8>, String> {
         }
     }
     if out.len() != out_len {
-        return Err(format!("decompressed {} bytes, header says {out_len}", out.len()));
+        return Err(format!(
+            "decompressed {} bytes, header says {out_len}",
+            out.len()
+        ));
     }
     Ok(out)
 }
@@ -327,7 +444,11 @@ fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
     let mut points = None;
     let mut at = 0;
     let data_kind = loop {
-        let end = bytes[at..].iter().position(|&b| b == b'\n').map(|e| at + e).ok_or_else(|| err("PCD header has no DATA line".into()))?;
+        let end = bytes[at..]
+            .iter()
+            .position(|&b| b == b'\n')
+            .map(|e| at + e)
+            .ok_or_else(|| err("PCD header has no DATA line".into()))?;
         let line = String::from_utf8_lossy(&bytes[at..end]).trim().to_string();
         at = end + 1;
         if line.is_empty() || line.starts_with('#') {
@@ -337,14 +458,30 @@ fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
         let key = words.next().unwrap_or("").to_ascii_uppercase();
         let rest: Vec<String> = words.map(String::from).collect();
         let nums = |rest: &[String]| -> Result<Vec<usize>, RegisterError> {
-            rest.iter().map(|w| w.parse::<usize>().map_err(|_| err(format!("bad number `{w}` in `{line}`")))).collect()
+            rest.iter()
+                .map(|w| {
+                    w.parse::<usize>()
+                        .map_err(|_| err(format!("bad number `{w}` in `{line}`")))
+                })
+                .collect()
         };
         match key.as_str() {
             "FIELDS" => fields = rest,
             "SIZE" => sizes = nums(&rest)?,
-            "TYPE" => types = rest.iter().map(|t| t.chars().next().unwrap_or('?')).collect(),
+            "TYPE" => {
+                types = rest
+                    .iter()
+                    .map(|t| t.chars().next().unwrap_or('?'))
+                    .collect()
+            }
             "COUNT" => counts = nums(&rest)?,
-            "POINTS" => points = Some(*nums(&rest)?.first().ok_or_else(|| err("POINTS without a number".into()))?),
+            "POINTS" => {
+                points = Some(
+                    *nums(&rest)?
+                        .first()
+                        .ok_or_else(|| err("POINTS without a number".into()))?,
+                )
+            }
             "DATA" => break rest.first().cloned().unwrap_or_default(),
             _ => {}
         }
@@ -354,12 +491,21 @@ fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
         counts = vec![1; fields.len()];
     }
     if sizes.len() != fields.len() || types.len() != fields.len() || counts.len() != fields.len() {
-        return Err(err("PCD header: FIELDS, SIZE, TYPE and COUNT differ in length".into()));
+        return Err(err(
+            "PCD header: FIELDS, SIZE, TYPE and COUNT differ in length".into(),
+        ));
     }
     // One value per (field, element); columns in field order.
     let width: usize = counts.iter().sum();
     let mut values = vec![0f64; n * width];
-    let offsets: Vec<usize> = counts.iter().scan(0, |s, c| { let o = *s; *s += c; Some(o) }).collect();
+    let offsets: Vec<usize> = counts
+        .iter()
+        .scan(0, |s, c| {
+            let o = *s;
+            *s += c;
+            Some(o)
+        })
+        .collect();
     let decode = |b: &[u8], t: char, size: usize| -> f64 {
         match (t, size) {
             ('F', 4) => f32::from_le_bytes(b[..4].try_into().unwrap()) as f64,
@@ -376,10 +522,16 @@ fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
     let body = &bytes[at..];
     match data_kind.as_str() {
         "ascii" => {
-            let text = std::str::from_utf8(body).map_err(|_| err("ASCII PCD body is not text".into()))?;
+            let text =
+                std::str::from_utf8(body).map_err(|_| err("ASCII PCD body is not text".into()))?;
             let mut tokens = text.split_whitespace();
             for (k, v) in values.iter_mut().enumerate() {
-                let t = tokens.next().ok_or_else(|| err(format!("file ends early: point {} of {n}", k / width.max(1))))?;
+                let t = tokens.next().ok_or_else(|| {
+                    err(format!(
+                        "file ends early: point {} of {n}",
+                        k / width.max(1)
+                    ))
+                })?;
                 *v = t.parse().map_err(|_| err(format!("bad number `{t}`")))?;
             }
             // Packed rgb in ASCII files is the float reinterpretation of the integer.
@@ -395,13 +547,18 @@ fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
         "binary" => {
             let stride: usize = sizes.iter().zip(&counts).map(|(s, c)| s * c).sum();
             if body.len() < n * stride {
-                return Err(err(format!("file is truncated: {n} points need {} bytes, {} remain", n * stride, body.len())));
+                return Err(err(format!(
+                    "file is truncated: {n} points need {} bytes, {} remain",
+                    n * stride,
+                    body.len()
+                )));
             }
             for i in 0..n {
                 let mut o = i * stride;
                 for f in 0..fields.len() {
                     for c in 0..counts[f] {
-                        values[i * width + offsets[f] + c] = raw_or_value(&body[o..], types[f], sizes[f], &fields[f], &decode);
+                        values[i * width + offsets[f] + c] =
+                            raw_or_value(&body[o..], types[f], sizes[f], &fields[f], &decode);
                         o += sizes[f];
                     }
                 }
@@ -413,15 +570,20 @@ fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
             }
             let compressed = u32::from_le_bytes(body[0..4].try_into().unwrap()) as usize;
             let raw = u32::from_le_bytes(body[4..8].try_into().unwrap()) as usize;
-            let data = body.get(8..8 + compressed).ok_or_else(|| err("compressed PCD body is truncated".into()))?;
+            let data = body
+                .get(8..8 + compressed)
+                .ok_or_else(|| err("compressed PCD body is truncated".into()))?;
             let data = lzf_decompress(data, raw).map_err(err)?;
             // Column-major: all of field 0, then all of field 1...
             let mut o = 0;
             for f in 0..fields.len() {
                 for i in 0..n {
                     for c in 0..counts[f] {
-                        let b = data.get(o..o + sizes[f]).ok_or_else(|| err("decompressed data too short".into()))?;
-                        values[i * width + offsets[f] + c] = raw_or_value(b, types[f], sizes[f], &fields[f], &decode);
+                        let b = data
+                            .get(o..o + sizes[f])
+                            .ok_or_else(|| err("decompressed data too short".into()))?;
+                        values[i * width + offsets[f] + c] =
+                            raw_or_value(b, types[f], sizes[f], &fields[f], &decode);
                         o += sizes[f];
                     }
                 }
@@ -443,7 +605,9 @@ fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
         cloud.points.push(Point3::new(r[x], r[y], r[z]));
         if let Some(c) = col("rgb").or(col("rgba")) {
             let packed = r[c] as u32;
-            cloud.colors.push([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255].map(|v| v as f32 / 255.0));
+            cloud.colors.push(
+                [(packed >> 16) & 255, (packed >> 8) & 255, packed & 255].map(|v| v as f32 / 255.0),
+            );
         }
         if let (Some(a), Some(b), Some(c)) = (col("normal_x"), col("normal_y"), col("normal_z")) {
             cloud.normals.push(Vector3::new(r[a], r[b], r[c]));
@@ -453,7 +617,13 @@ fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
 }
 
 /// Packed colour fields keep their bit pattern (as an integer); others decode.
-fn raw_or_value(b: &[u8], t: char, size: usize, field: &str, decode: &dyn Fn(&[u8], char, usize) -> f64) -> f64 {
+fn raw_or_value(
+    b: &[u8],
+    t: char,
+    size: usize,
+    field: &str,
+    decode: &dyn Fn(&[u8], char, usize) -> f64,
+) -> f64 {
     if (field == "rgb" || field == "rgba") && size == 4 {
         u32::from_le_bytes(b[..4].try_into().unwrap()) as f64
     } else {
@@ -491,7 +661,11 @@ mod tests {
     #[test]
     fn pcd_ascii_binary_and_compressed() {
         let dir = tempfile::tempdir().unwrap();
-        let header = |data: &str| format!("# .PCD v0.7\nVERSION 0.7\nFIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F U\nCOUNT 1 1 1 1\nWIDTH 2\nHEIGHT 1\nPOINTS 2\nDATA {data}\n");
+        let header = |data: &str| {
+            format!(
+                "# .PCD v0.7\nVERSION 0.7\nFIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F U\nCOUNT 1 1 1 1\nWIDTH 2\nHEIGHT 1\nPOINTS 2\nDATA {data}\n"
+            )
+        };
         let ascii = header("ascii") + "1 2 3 16711680\n4 5 6 255\n";
         std::fs::write(dir.path().join("a.pcd"), ascii).unwrap();
         let a = read_cloud(&dir.path().join("a.pcd")).unwrap();
@@ -511,10 +685,18 @@ mod tests {
         // binary_compressed with an all-literal LZF stream (column-major data).
         let mut raw = Vec::new();
         // x column, y column, z column, rgb column.
-        for v in [1f32, 4.0] { raw.extend(v.to_le_bytes()); }
-        for v in [2f32, 5.0] { raw.extend(v.to_le_bytes()); }
-        for v in [3f32, 6.0] { raw.extend(v.to_le_bytes()); }
-        for c in [0xff0000u32, 0x0000ff] { raw.extend(c.to_le_bytes()); }
+        for v in [1f32, 4.0] {
+            raw.extend(v.to_le_bytes());
+        }
+        for v in [2f32, 5.0] {
+            raw.extend(v.to_le_bytes());
+        }
+        for v in [3f32, 6.0] {
+            raw.extend(v.to_le_bytes());
+        }
+        for c in [0xff0000u32, 0x0000ff] {
+            raw.extend(c.to_le_bytes());
+        }
         let mut lzf = vec![(raw.len() - 1) as u8];
         lzf.extend_from_slice(&raw);
         let mut cb = header("binary_compressed").into_bytes();
@@ -525,7 +707,12 @@ mod tests {
         assert_eq!(read_cloud(&dir.path().join("c.pcd")).unwrap(), a);
         // Truncated binary.
         std::fs::write(dir.path().join("t.pcd"), &bin[..bin.len() - 3]).unwrap();
-        assert!(read_cloud(&dir.path().join("t.pcd")).unwrap_err().to_string().contains("truncated"));
+        assert!(
+            read_cloud(&dir.path().join("t.pcd"))
+                .unwrap_err()
+                .to_string()
+                .contains("truncated")
+        );
     }
 
     #[test]
@@ -542,16 +729,33 @@ mod tests {
         std::fs::write(dir.path().join("p.xyz"), "0 0 0\n1 2 3\n").unwrap();
         assert_eq!(read_cloud(&dir.path().join("p.xyz")).unwrap().len(), 2);
         std::fs::write(dir.path().join("e.xyz"), "").unwrap();
-        assert!(read_cloud(&dir.path().join("e.xyz")).unwrap_err().to_string().contains("empty"));
+        assert!(
+            read_cloud(&dir.path().join("e.xyz"))
+                .unwrap_err()
+                .to_string()
+                .contains("empty")
+        );
         std::fs::write(dir.path().join("n.xyz"), "0 0 nan\n").unwrap();
-        assert!(read_cloud(&dir.path().join("n.xyz")).unwrap_err().to_string().contains("NaN"));
+        assert!(
+            read_cloud(&dir.path().join("n.xyz"))
+                .unwrap_err()
+                .to_string()
+                .contains("NaN")
+        );
         std::fs::write(dir.path().join("b.xyz"), "0 0 x\n").unwrap();
-        assert!(read_cloud(&dir.path().join("b.xyz")).unwrap_err().to_string().contains("b.xyz"));
+        assert!(
+            read_cloud(&dir.path().join("b.xyz"))
+                .unwrap_err()
+                .to_string()
+                .contains("b.xyz")
+        );
     }
 
     #[test]
     fn splat_filter_drops_transparent_and_huge_splats() {
-        let names = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2"];
+        let names = [
+            "x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+        ];
         let rows = [
             [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 3.0, -5.0, -5.0, -5.0],
             [1.0, 0.0, 0.0, 1.0, 0.0, 0.0, -4.0, -5.0, -5.0, -5.0],
@@ -561,10 +765,23 @@ mod tests {
         let element = Element {
             name: "vertex".into(),
             count: rows.len(),
-            properties: names.iter().map(|n| Property { name: n.to_string(), scalar: ScalarType::F32, list_count: None }).collect(),
-            columns: (0..names.len()).map(|k| Column::Scalar(rows.iter().map(|r| r[k]).collect())).collect(),
+            properties: names
+                .iter()
+                .map(|n| Property {
+                    name: n.to_string(),
+                    scalar: ScalarType::F32,
+                    list_count: None,
+                })
+                .collect(),
+            columns: (0..names.len())
+                .map(|k| Column::Scalar(rows.iter().map(|r| r[k]).collect()))
+                .collect(),
         };
-        let ply = PlyFile { format: Format::BinaryLittleEndian, comments: vec![], elements: vec![element] };
+        let ply = PlyFile {
+            format: Format::BinaryLittleEndian,
+            comments: vec![],
+            elements: vec![element],
+        };
         assert!(is_splat_ply(&ply));
         let cloud = splat_centres(&ply, &SplatFilter::default()).unwrap();
         let xs: Vec<f64> = cloud.points.iter().map(|p| p.x).collect();

@@ -20,7 +20,12 @@ use crate::neighbors::Neighbors;
 pub type Fpfh = [f32; 33];
 
 /// (α, φ, θ) of a point pair, Open3D's `ComputePairFeatures`; `None` when degenerate.
-fn pair_features(p1: &Point3<f64>, n1: &Vector3<f64>, p2: &Point3<f64>, n2: &Vector3<f64>) -> Option<[f64; 3]> {
+fn pair_features(
+    p1: &Point3<f64>,
+    n1: &Vector3<f64>,
+    p2: &Point3<f64>,
+    n2: &Vector3<f64>,
+) -> Option<[f64; 3]> {
     let mut d = p2 - p1;
     let len = d.norm();
     if len == 0.0 {
@@ -53,7 +58,11 @@ fn bin(value: f64, lo: f64, hi: f64) -> usize {
 /// needs (consistently oriented) normals.
 pub fn compute_fpfh(cloud: &PointCloud, radius: f64, max_nn: usize) -> Vec<Fpfh> {
     let nn = Neighbors::new(&cloud.points);
-    let neighbourhoods: Vec<Vec<(usize, f64)>> = cloud.points.par_iter().map(|p| nn.hybrid(p, radius, max_nn)).collect();
+    let neighbourhoods: Vec<Vec<(usize, f64)>> = cloud
+        .points
+        .par_iter()
+        .map(|p| nn.hybrid(p, radius, max_nn))
+        .collect();
     let spfh: Vec<[f64; 33]> = (0..cloud.len())
         .into_par_iter()
         .map(|i| {
@@ -62,7 +71,12 @@ pub fn compute_fpfh(cloud: &PointCloud, radius: f64, max_nn: usize) -> Vec<Fpfh>
             if nbrs.len() > 1 {
                 let incr = 100.0 / (nbrs.len() - 1) as f64;
                 for &(j, _) in nbrs.iter().skip(1) {
-                    if let Some([alpha, phi, theta]) = pair_features(&cloud.points[i], &cloud.normals[i], &cloud.points[j], &cloud.normals[j]) {
+                    if let Some([alpha, phi, theta]) = pair_features(
+                        &cloud.points[i],
+                        &cloud.normals[i],
+                        &cloud.points[j],
+                        &cloud.normals[j],
+                    ) {
                         h[bin(alpha, -std::f64::consts::PI, std::f64::consts::PI)] += incr;
                         h[11 + bin(phi, -1.0, 1.0)] += incr;
                         h[22 + bin(theta, -1.0, 1.0)] += incr;
@@ -106,9 +120,15 @@ fn nearest_features(from: &[Fpfh], to: &[Fpfh]) -> Vec<usize> {
     if to.is_empty() {
         return vec![];
     }
-    let tree: ImmutableKdTree<f32, 33> = ImmutableKdTree::new_from_slice(to).expect("non-empty feature set");
+    let tree: ImmutableKdTree<f32, 33> =
+        ImmutableKdTree::new_from_slice(to).expect("non-empty feature set");
     from.par_iter()
-        .map(|f| tree.query(f).nearest_n::<SquaredEuclidean<f32>>(NonZero::new(1).unwrap()).execute()[0].item as usize)
+        .map(|f| {
+            tree.query(f)
+                .nearest_n::<SquaredEuclidean<f32>>(NonZero::new(1).unwrap())
+                .execute()[0]
+                .item as usize
+        })
         .collect()
 }
 
@@ -122,8 +142,16 @@ pub fn match_features(source: &[Fpfh], target: &[Fpfh], mutual: bool) -> Vec<(us
         return all;
     }
     let backward = nearest_features(target, source);
-    let kept: Vec<(usize, usize)> = all.iter().copied().filter(|&(i, j)| backward[j] == i).collect();
-    if (kept.len() as f64) < 0.1 * source.len() as f64 { all } else { kept }
+    let kept: Vec<(usize, usize)> = all
+        .iter()
+        .copied()
+        .filter(|&(i, j)| backward[j] == i)
+        .collect();
+    if (kept.len() as f64) < 0.1 * source.len() as f64 {
+        all
+    } else {
+        kept
+    }
 }
 
 #[cfg(test)]
@@ -143,7 +171,10 @@ mod tests {
                 Point3::new(bump * r * t.cos(), bump * y, bump * r * t.sin() * 0.7)
             })
             .collect();
-        PointCloud { points, ..Default::default() }
+        PointCloud {
+            points,
+            ..Default::default()
+        }
     }
 
     #[test]
@@ -164,14 +195,32 @@ mod tests {
         // Matching a cloud against its moved copy finds (mostly) the same points.
         let m = match_features(&fa, &fb, true);
         let right = m.iter().filter(|(i, j)| i == j).count();
-        assert!(right as f64 > 0.8 * m.len() as f64, "{right} of {}", m.len());
+        assert!(
+            right as f64 > 0.8 * m.len() as f64,
+            "{right} of {}",
+            m.len()
+        );
     }
 
     #[test]
     fn pair_features_of_a_known_pair() {
         // Normals both along z, points along x: θ = 0, φ = 0, α = 0.
-        let f = pair_features(&Point3::origin(), &Vector3::z(), &Point3::new(1.0, 0.0, 0.0), &Vector3::z()).unwrap();
+        let f = pair_features(
+            &Point3::origin(),
+            &Vector3::z(),
+            &Point3::new(1.0, 0.0, 0.0),
+            &Vector3::z(),
+        )
+        .unwrap();
         assert!(f.iter().all(|v| v.abs() < 1e-12), "{f:?}");
-        assert!(pair_features(&Point3::origin(), &Vector3::z(), &Point3::origin(), &Vector3::z()).is_none());
+        assert!(
+            pair_features(
+                &Point3::origin(),
+                &Vector3::z(),
+                &Point3::origin(),
+                &Vector3::z()
+            )
+            .is_none()
+        );
     }
 }

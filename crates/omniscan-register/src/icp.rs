@@ -18,7 +18,10 @@
 //! reweight residuals (iteratively reweighted least squares). Sums are
 //! reduced in a fixed order, so results do not depend on thread timing.
 
-use nalgebra::{Cholesky, Matrix3, Matrix6, Point3, Rotation3, SVD, Translation3, UnitQuaternion, Vector3, Vector6};
+use nalgebra::{
+    Cholesky, Matrix3, Matrix6, Point3, Rotation3, SVD, Translation3, UnitQuaternion, Vector3,
+    Vector6,
+};
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -36,7 +39,11 @@ pub struct Criteria {
 
 impl Default for Criteria {
     fn default() -> Self {
-        Criteria { relative_fitness: 1e-6, relative_rmse: 1e-6, max_iteration: 30 }
+        Criteria {
+            relative_fitness: 1e-6,
+            relative_rmse: 1e-6,
+            max_iteration: 30,
+        }
     }
 }
 
@@ -54,10 +61,18 @@ impl Kernel {
         match self {
             Kernel::L2 => 1.0,
             Kernel::Huber(k) => {
-                if r.abs() <= k { 1.0 } else { k / r.abs() }
+                if r.abs() <= k {
+                    1.0
+                } else {
+                    k / r.abs()
+                }
             }
             Kernel::Tukey(k) => {
-                if r.abs() <= k { (1.0 - (r / k).powi(2)).powi(2) } else { 0.0 }
+                if r.abs() <= k {
+                    (1.0 - (r / k).powi(2)).powi(2)
+                } else {
+                    0.0
+                }
             }
             Kernel::Cauchy(k) => 1.0 / (1.0 + (r / k).powi(2)),
         }
@@ -70,7 +85,9 @@ pub enum Estimator {
     PointToPoint,
     PointToPlane,
     /// `lambda_geometric` in [0, 1] weighs the geometric term (Open3D default 0.968).
-    Colored { lambda_geometric: f64 },
+    Colored {
+        lambda_geometric: f64,
+    },
 }
 
 impl Estimator {
@@ -81,7 +98,9 @@ impl Estimator {
             Estimator::Colored { .. } => "colored",
         }
     }
-    pub const COLORED: Estimator = Estimator::Colored { lambda_geometric: 0.968 };
+    pub const COLORED: Estimator = Estimator::Colored {
+        lambda_geometric: 0.968,
+    };
 }
 
 /// Result of a registration (Open3D's `RegistrationResult`).
@@ -105,7 +124,8 @@ fn serialize_pose<S: serde::Serializer>(p: &Pose, s: S) -> Result<S::Ok, S::Erro
 impl Registration {
     /// Open3D's ranking: higher fitness, then lower RMSE.
     pub fn is_better_than(&self, other: &Registration) -> bool {
-        self.fitness > other.fitness || (self.fitness == other.fitness && self.inlier_rmse < other.inlier_rmse)
+        self.fitness > other.fitness
+            || (self.fitness == other.fitness && self.inlier_rmse < other.inlier_rmse)
     }
 }
 
@@ -117,14 +137,21 @@ pub struct Target<'a> {
 
 impl<'a> Target<'a> {
     pub fn new(cloud: &'a PointCloud) -> Target<'a> {
-        Target { cloud, neighbors: Neighbors::new(&cloud.points) }
+        Target {
+            cloud,
+            neighbors: Neighbors::new(&cloud.points),
+        }
     }
 }
 
 const CHUNK: usize = 2048;
 
 /// Correspondences (source index, target index, distance²) of `points` in `target`.
-fn correspondences(points: &[Point3<f64>], target: &Target, max_distance: f64) -> Vec<(usize, usize, f64)> {
+fn correspondences(
+    points: &[Point3<f64>],
+    target: &Target,
+    max_distance: f64,
+) -> Vec<(usize, usize, f64)> {
     let max2 = max_distance * max_distance;
     points
         .par_chunks(CHUNK)
@@ -148,16 +175,30 @@ fn score(n_source: usize, corr: &[(usize, usize, f64)]) -> (f64, f64) {
         return (0.0, 0.0);
     }
     let sum: f64 = corr.iter().map(|c| c.2).sum();
-    (corr.len() as f64 / n_source as f64, (sum / corr.len() as f64).sqrt())
+    (
+        corr.len() as f64 / n_source as f64,
+        (sum / corr.len() as f64).sqrt(),
+    )
 }
 
 /// Fitness and RMSE of `source` moved by `transformation` against `target`
 /// (Open3D's `evaluate_registration`).
-pub fn evaluate(source: &PointCloud, target: &Target, max_distance: f64, transformation: &Pose) -> Registration {
+pub fn evaluate(
+    source: &PointCloud,
+    target: &Target,
+    max_distance: f64,
+    transformation: &Pose,
+) -> Registration {
     let moved: Vec<Point3<f64>> = source.points.iter().map(|p| transformation * p).collect();
     let corr = correspondences(&moved, target, max_distance);
     let (fitness, inlier_rmse) = score(source.len(), &corr);
-    Registration { transformation: *transformation, fitness, inlier_rmse, correspondences: corr.len(), iterations: 0 }
+    Registration {
+        transformation: *transformation,
+        fitness,
+        inlier_rmse,
+        correspondences: corr.len(),
+        iterations: 0,
+    }
 }
 
 /// Rotation Rz(γ)·Ry(β)·Rx(α) and translation from ξ = (α, β, γ, tx, ty, tz).
@@ -165,7 +206,10 @@ fn pose_from_twist(x: &Vector6<f64>) -> Pose {
     let r = Rotation3::from_axis_angle(&Vector3::z_axis(), x[2])
         * Rotation3::from_axis_angle(&Vector3::y_axis(), x[1])
         * Rotation3::from_axis_angle(&Vector3::x_axis(), x[0]);
-    Pose::from_parts(Translation3::new(x[3], x[4], x[5]), UnitQuaternion::from_rotation_matrix(&r))
+    Pose::from_parts(
+        Translation3::new(x[3], x[4], x[5]),
+        UnitQuaternion::from_rotation_matrix(&r),
+    )
 }
 
 /// Solves JᵀJ ξ = −Jᵀr; the identity where the system is singular (as Open3D does).
@@ -173,7 +217,11 @@ fn gauss_newton_step(jtj: &Matrix6<f64>, jtr: &Vector6<f64>) -> Pose {
     match Cholesky::new(*jtj) {
         Some(ch) => {
             let x = ch.solve(&(-jtr));
-            if x.iter().all(|v| v.is_finite()) { pose_from_twist(&x) } else { Pose::identity() }
+            if x.iter().all(|v| v.is_finite()) {
+                pose_from_twist(&x)
+            } else {
+                Pose::identity()
+            }
         }
         None => Pose::identity(),
     }
@@ -198,7 +246,11 @@ where
             (jtj, jtr)
         })
         .collect();
-    parts.into_iter().fold((Matrix6::zeros(), Vector6::zeros()), |(a, b), (c, d)| (a + c, b + d))
+    parts
+        .into_iter()
+        .fold((Matrix6::zeros(), Vector6::zeros()), |(a, b), (c, d)| {
+            (a + c, b + d)
+        })
 }
 
 /// Closed-form rigid transform minimising Σ‖q − (R p + t)‖² (Kabsch).
@@ -214,7 +266,9 @@ pub fn kabsch(pairs: &[(Point3<f64>, Point3<f64>)]) -> Pose {
         h += (p.coords - ps) * (q.coords - qs).transpose();
     }
     let svd = SVD::new(h, true, true);
-    let (Some(u), Some(vt)) = (svd.u, svd.v_t) else { return Pose::identity() };
+    let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
+        return Pose::identity();
+    };
     let v = vt.transpose();
     let d = (v * u.transpose()).determinant().signum();
     let r = v * Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, d)) * u.transpose();
@@ -273,19 +327,28 @@ pub fn icp(
     source.validate("source")?;
     target.cloud.validate("target")?;
     if !(max_distance.is_finite() && max_distance > 0.0) {
-        return Err(RegisterError::Invalid(format!("the correspondence distance must be positive, got {max_distance}")));
+        return Err(RegisterError::Invalid(format!(
+            "the correspondence distance must be positive, got {max_distance}"
+        )));
     }
     let needs_normals = !matches!(estimator, Estimator::PointToPoint);
     if needs_normals && !target.cloud.has_normals() {
-        return Err(RegisterError::Invalid(format!("{} ICP needs target normals; estimate them first", estimator.name())));
+        return Err(RegisterError::Invalid(format!(
+            "{} ICP needs target normals; estimate them first",
+            estimator.name()
+        )));
     }
     let gradients = match estimator {
         Estimator::Colored { lambda_geometric } => {
             if !source.has_colors() || !target.cloud.has_colors() {
-                return Err(RegisterError::Invalid("colored ICP needs colours on both point clouds".into()));
+                return Err(RegisterError::Invalid(
+                    "colored ICP needs colours on both point clouds".into(),
+                ));
             }
             if !(0.0..=1.0).contains(&lambda_geometric) {
-                return Err(RegisterError::Invalid(format!("lambda_geometric must be in [0, 1], got {lambda_geometric}")));
+                return Err(RegisterError::Invalid(format!(
+                    "lambda_geometric must be in [0, 1], got {lambda_geometric}"
+                )));
             }
             color_gradients(target, max_distance)
         }
@@ -300,7 +363,10 @@ pub fn icp(
     for _ in 0..criteria.max_iteration {
         let delta = match estimator {
             Estimator::PointToPoint => {
-                let pairs: Vec<(Point3<f64>, Point3<f64>)> = corr.iter().map(|&(i, j, _)| (moved[i], tc.points[j])).collect();
+                let pairs: Vec<(Point3<f64>, Point3<f64>)> = corr
+                    .iter()
+                    .map(|&(i, j, _)| (moved[i], tc.points[j]))
+                    .collect();
                 kabsch(&pairs)
             }
             Estimator::PointToPlane => {
@@ -321,7 +387,10 @@ pub fn icp(
                     let rg = (s - q).dot(&n);
                     let wg = kernel.weight(rg).sqrt();
                     let c = s.coords.cross(&n);
-                    emit(Vector6::new(c.x, c.y, c.z, n.x, n.y, n.z) * (sg * wg), rg * sg * wg);
+                    emit(
+                        Vector6::new(c.x, c.y, c.z, n.x, n.y, n.z) * (sg * wg),
+                        rg * sg * wg,
+                    );
                     let projected = s - n * rg;
                     let predicted = tc.intensity(j) + d.dot(&(projected - q));
                     let rc = source.intensity(i) - predicted;
@@ -329,7 +398,10 @@ pub fn icp(
                     let dm = -(m * d);
                     let wc = kernel.weight(rc).sqrt();
                     let c = s.coords.cross(&dm);
-                    emit(Vector6::new(c.x, c.y, c.z, dm.x, dm.y, dm.z) * (sc * wc), rc * sc * wc);
+                    emit(
+                        Vector6::new(c.x, c.y, c.z, dm.x, dm.y, dm.z) * (sc * wc),
+                        rc * sc * wc,
+                    );
                 });
                 gauss_newton_step(&jtj, &jtr)
             }
@@ -341,14 +413,21 @@ pub fn icp(
         iterations += 1;
         corr = correspondences(&moved, target, max_distance);
         let (f, r) = score(source.len(), &corr);
-        let converged = (fitness - f).abs() < criteria.relative_fitness && (rmse - r).abs() < criteria.relative_rmse;
+        let converged = (fitness - f).abs() < criteria.relative_fitness
+            && (rmse - r).abs() < criteria.relative_rmse;
         fitness = f;
         rmse = r;
         if converged {
             break;
         }
     }
-    Ok(Registration { transformation, fitness, inlier_rmse: rmse, correspondences: corr.len(), iterations })
+    Ok(Registration {
+        transformation,
+        fitness,
+        inlier_rmse: rmse,
+        correspondences: corr.len(),
+        iterations,
+    })
 }
 
 /// Colored ICP over a coarse-to-fine schedule of voxel sizes (Open3D's
@@ -370,8 +449,19 @@ pub fn multiscale_colored_icp(
         crate::preprocess::estimate_normals(&mut s, 2.0 * voxel, 30);
         crate::preprocess::estimate_normals(&mut t, 2.0 * voxel, 30);
         let tt = Target::new(&t);
-        let criteria = Criteria { max_iteration: iters, ..Criteria::default() };
-        let r = icp(&s, &tt, voxel, &current, Estimator::COLORED, Kernel::L2, &criteria)?;
+        let criteria = Criteria {
+            max_iteration: iters,
+            ..Criteria::default()
+        };
+        let r = icp(
+            &s,
+            &tt,
+            voxel,
+            &current,
+            Estimator::COLORED,
+            Kernel::L2,
+            &criteria,
+        )?;
         current = r.transformation;
         last = Some(r);
     }
@@ -389,7 +479,10 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let mut c = PointCloud::default();
         for _ in 0..n {
-            let (u, v): (f64, f64) = (rng.random::<f64>() * 0.2 - 0.1, rng.random::<f64>() * 0.2 - 0.1);
+            let (u, v): (f64, f64) = (
+                rng.random::<f64>() * 0.2 - 0.1,
+                rng.random::<f64>() * 0.2 - 0.1,
+            );
             let z = 0.02 * (u * 40.0).sin() * (v * 25.0).cos() + 0.01 * (u * 13.0 + v * 7.0).sin();
             c.points.push(Point3::new(u, v, z));
             let t = (0.5 + 0.5 * (u * 60.0).sin() * (v * 45.0).cos()) as f32;
@@ -416,17 +509,46 @@ mod tests {
         let tt = Target::new(&t_cloud);
         let mut rng = ChaCha8Rng::seed_from_u64(7);
         for _ in 0..5 {
-            let axis = Vector3::new(rng.random::<f64>() - 0.5, rng.random::<f64>() - 0.5, rng.random::<f64>() - 0.5).normalize();
+            let axis = Vector3::new(
+                rng.random::<f64>() - 0.5,
+                rng.random::<f64>() - 0.5,
+                rng.random::<f64>() - 0.5,
+            )
+            .normalize();
             let truth = Pose::from_parts(
                 Translation3::new(0.004, -0.003, 0.002),
-                UnitQuaternion::from_axis_angle(&nalgebra::Unit::new_normalize(axis), 3f64.to_radians()),
+                UnitQuaternion::from_axis_angle(
+                    &nalgebra::Unit::new_normalize(axis),
+                    3f64.to_radians(),
+                ),
             );
             let source = target.transformed(&truth.inverse());
-            for est in [Estimator::PointToPoint, Estimator::PointToPlane, Estimator::COLORED] {
-                let crit = Criteria { max_iteration: 60, ..Criteria::default() };
-                let r = icp(&source, &tt, 0.02, &Pose::identity(), est, Kernel::L2, &crit).unwrap();
+            for est in [
+                Estimator::PointToPoint,
+                Estimator::PointToPlane,
+                Estimator::COLORED,
+            ] {
+                let crit = Criteria {
+                    max_iteration: 60,
+                    ..Criteria::default()
+                };
+                let r = icp(
+                    &source,
+                    &tt,
+                    0.02,
+                    &Pose::identity(),
+                    est,
+                    Kernel::L2,
+                    &crit,
+                )
+                .unwrap();
                 let (a, d) = omniscan_core::geometry::pose_difference(&r.transformation, &truth);
-                assert!(a.to_degrees() < 0.01 && d < 1e-4, "{est:?}: {:.4}° {:.2e} m", a.to_degrees(), d);
+                assert!(
+                    a.to_degrees() < 0.01 && d < 1e-4,
+                    "{est:?}: {:.4}° {:.2e} m",
+                    a.to_degrees(),
+                    d
+                );
                 assert!(r.fitness > 0.999 && r.inlier_rmse < 1e-5, "{est:?}: {r:?}");
             }
         }
@@ -434,9 +556,16 @@ mod tests {
 
     #[test]
     fn fitness_and_rmse_follow_open3d_definitions() {
-        let target = PointCloud { points: vec![Point3::origin(), Point3::new(1.0, 0.0, 0.0)], ..Default::default() };
+        let target = PointCloud {
+            points: vec![Point3::origin(), Point3::new(1.0, 0.0, 0.0)],
+            ..Default::default()
+        };
         let source = PointCloud {
-            points: vec![Point3::new(0.0, 0.1, 0.0), Point3::new(1.0, 0.0, 0.3), Point3::new(5.0, 0.0, 0.0)],
+            points: vec![
+                Point3::new(0.0, 0.1, 0.0),
+                Point3::new(1.0, 0.0, 0.3),
+                Point3::new(5.0, 0.0, 0.0),
+            ],
             ..Default::default()
         };
         let r = evaluate(&source, &Target::new(&target), 0.5, &Pose::identity());
@@ -444,7 +573,16 @@ mod tests {
         assert!((r.inlier_rmse - ((0.01 + 0.09) / 2f64).sqrt()).abs() < 1e-12);
         // No overlap is a result, not an error.
         let far = source.transformed(&Pose::translation(100.0, 0.0, 0.0));
-        let r = icp(&far, &Target::new(&target), 0.5, &Pose::identity(), Estimator::PointToPoint, Kernel::L2, &Criteria::default()).unwrap();
+        let r = icp(
+            &far,
+            &Target::new(&target),
+            0.5,
+            &Pose::identity(),
+            Estimator::PointToPoint,
+            Kernel::L2,
+            &Criteria::default(),
+        )
+        .unwrap();
         assert_eq!((r.fitness, r.inlier_rmse), (0.0, 0.0));
     }
 
@@ -453,21 +591,78 @@ mod tests {
         let c = surface(100, 3);
         let tt = Target::new(&c);
         let crit = Criteria::default();
-        let err = icp(&c, &tt, 0.1, &Pose::identity(), Estimator::PointToPlane, Kernel::L2, &crit).unwrap_err().to_string();
+        let err = icp(
+            &c,
+            &tt,
+            0.1,
+            &Pose::identity(),
+            Estimator::PointToPlane,
+            Kernel::L2,
+            &crit,
+        )
+        .unwrap_err()
+        .to_string();
         assert!(err.contains("normals"), "{err}");
         let mut with_normals = c.clone();
         crate::preprocess::estimate_normals(&mut with_normals, 0.02, 30);
         let mut grey = c.clone();
         grey.colors.clear();
         let tn = Target::new(&with_normals);
-        let err = icp(&grey, &tn, 0.1, &Pose::identity(), Estimator::COLORED, Kernel::L2, &crit).unwrap_err().to_string();
+        let err = icp(
+            &grey,
+            &tn,
+            0.1,
+            &Pose::identity(),
+            Estimator::COLORED,
+            Kernel::L2,
+            &crit,
+        )
+        .unwrap_err()
+        .to_string();
         assert!(err.contains("colours"), "{err}");
         let empty = PointCloud::default();
-        assert!(icp(&empty, &tt, 0.1, &Pose::identity(), Estimator::PointToPoint, Kernel::L2, &crit).unwrap_err().to_string().contains("empty"));
+        assert!(
+            icp(
+                &empty,
+                &tt,
+                0.1,
+                &Pose::identity(),
+                Estimator::PointToPoint,
+                Kernel::L2,
+                &crit
+            )
+            .unwrap_err()
+            .to_string()
+            .contains("empty")
+        );
         let mut nan = c.clone();
         nan.points[5].x = f64::NAN;
-        assert!(icp(&nan, &tt, 0.1, &Pose::identity(), Estimator::PointToPoint, Kernel::L2, &crit).unwrap_err().to_string().contains("NaN"));
-        assert!(icp(&c, &tt, 0.0, &Pose::identity(), Estimator::PointToPoint, Kernel::L2, &crit).is_err());
+        assert!(
+            icp(
+                &nan,
+                &tt,
+                0.1,
+                &Pose::identity(),
+                Estimator::PointToPoint,
+                Kernel::L2,
+                &crit
+            )
+            .unwrap_err()
+            .to_string()
+            .contains("NaN")
+        );
+        assert!(
+            icp(
+                &c,
+                &tt,
+                0.0,
+                &Pose::identity(),
+                Estimator::PointToPoint,
+                Kernel::L2,
+                &crit
+            )
+            .is_err()
+        );
     }
 
     #[test]
@@ -476,18 +671,49 @@ mod tests {
         let mut tn = target.clone();
         crate::preprocess::estimate_normals(&mut tn, 0.01, 30);
         let tt = Target::new(&tn);
-        let truth = Pose::new(Vector3::new(0.003, 0.002, -0.001), Vector3::new(0.02, -0.03, 0.04));
+        let truth = Pose::new(
+            Vector3::new(0.003, 0.002, -0.001),
+            Vector3::new(0.02, -0.03, 0.04),
+        );
         let mut source = target.transformed(&truth.inverse());
         // A tenth of the points become junk 1-2 cm off the surface.
         let mut rng = ChaCha8Rng::seed_from_u64(9);
         for p in source.points.iter_mut().step_by(10) {
             p.z += 0.01 + 0.01 * rng.random::<f64>();
         }
-        let crit = Criteria { max_iteration: 60, ..Criteria::default() };
-        let robust = icp(&source, &tt, 0.03, &Pose::identity(), Estimator::PointToPlane, Kernel::Tukey(0.003), &crit).unwrap();
-        let plain = icp(&source, &tt, 0.03, &Pose::identity(), Estimator::PointToPlane, Kernel::L2, &crit).unwrap();
-        let err = |r: &Registration| omniscan_core::geometry::pose_difference(&r.transformation, &truth).1;
+        let crit = Criteria {
+            max_iteration: 60,
+            ..Criteria::default()
+        };
+        let robust = icp(
+            &source,
+            &tt,
+            0.03,
+            &Pose::identity(),
+            Estimator::PointToPlane,
+            Kernel::Tukey(0.003),
+            &crit,
+        )
+        .unwrap();
+        let plain = icp(
+            &source,
+            &tt,
+            0.03,
+            &Pose::identity(),
+            Estimator::PointToPlane,
+            Kernel::L2,
+            &crit,
+        )
+        .unwrap();
+        let err = |r: &Registration| {
+            omniscan_core::geometry::pose_difference(&r.transformation, &truth).1
+        };
         assert!(err(&robust) < 2e-4, "{}", err(&robust));
-        assert!(err(&robust) < err(&plain) / 3.0, "{} vs {}", err(&robust), err(&plain));
+        assert!(
+            err(&robust) < err(&plain) / 3.0,
+            "{} vs {}",
+            err(&robust),
+            err(&plain)
+        );
     }
 }

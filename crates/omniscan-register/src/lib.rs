@@ -5,9 +5,11 @@
 
 pub mod cloud;
 pub mod fpfh;
+pub mod global;
 pub mod icp;
 pub mod neighbors;
 pub mod preprocess;
+pub mod ransac;
 pub mod teaser;
 
 use std::path::{Path, PathBuf};
@@ -27,6 +29,9 @@ pub enum RegisterError {
 
 impl RegisterError {
     pub fn file(path: &Path, message: impl Into<String>) -> Self {
-        RegisterError::File { path: path.to_path_buf(), message: message.into() }
+        RegisterError::File {
+            path: path.to_path_buf(),
+            message: message.into(),
+        }
     }
 }

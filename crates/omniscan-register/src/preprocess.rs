@@ -73,7 +73,11 @@ fn pca_normal(points: &[nalgebra::Point3<f64>], indices: &[(usize, f64)]) -> Opt
         return None;
     }
     let n = indices.len() as f64;
-    let mean: Vector3<f64> = indices.iter().map(|&(i, _)| points[i].coords).sum::<Vector3<f64>>() / n;
+    let mean: Vector3<f64> = indices
+        .iter()
+        .map(|&(i, _)| points[i].coords)
+        .sum::<Vector3<f64>>()
+        / n;
     let mut cov = Matrix3::zeros();
     for &(i, _) in indices {
         let d = points[i].coords - mean;
@@ -91,7 +95,9 @@ pub fn estimate_normals(cloud: &mut PointCloud, radius: f64, max_nn: usize) {
     let normals: Vec<Vector3<f64>> = cloud
         .points
         .par_iter()
-        .map(|p| pca_normal(&cloud.points, &nn.hybrid(p, radius, max_nn)).unwrap_or_else(Vector3::z))
+        .map(|p| {
+            pca_normal(&cloud.points, &nn.hybrid(p, radius, max_nn)).unwrap_or_else(Vector3::z)
+        })
         .collect();
     cloud.normals = normals;
     orient_normals(cloud, 10);
@@ -107,7 +113,10 @@ impl Eq for Edge {}
 impl Ord for Edge {
     fn cmp(&self, o: &Self) -> Ordering {
         // Min-heap on cost, ties by index for determinism.
-        o.cost.total_cmp(&self.cost).then_with(|| o.to.cmp(&self.to)).then_with(|| o.from.cmp(&self.from))
+        o.cost
+            .total_cmp(&self.cost)
+            .then_with(|| o.to.cmp(&self.to))
+            .then_with(|| o.from.cmp(&self.from))
     }
 }
 impl PartialOrd for Edge {
@@ -126,7 +135,11 @@ pub fn orient_normals(cloud: &mut PointCloud, k: usize) {
         return;
     }
     let nn = Neighbors::new(&cloud.points);
-    let graph: Vec<Vec<usize>> = cloud.points.par_iter().map(|p| nn.knn(p, k + 1).into_iter().map(|(i, _)| i).collect()).collect();
+    let graph: Vec<Vec<usize>> = cloud
+        .points
+        .par_iter()
+        .map(|p| nn.knn(p, k + 1).into_iter().map(|(i, _)| i).collect())
+        .collect();
     // Make the graph symmetric so the tree can reach every neighbour.
     let mut adjacency: Vec<Vec<usize>> = graph.clone();
     for (i, list) in graph.iter().enumerate() {
@@ -138,7 +151,12 @@ pub fn orient_normals(cloud: &mut PointCloud, k: usize) {
     }
     let centroid = cloud.centroid();
     let mut order: Vec<usize> = (0..n).collect();
-    order.sort_by(|&a, &b| (cloud.points[b] - centroid).norm_squared().total_cmp(&(cloud.points[a] - centroid).norm_squared()).then(a.cmp(&b)));
+    order.sort_by(|&a, &b| {
+        (cloud.points[b] - centroid)
+            .norm_squared()
+            .total_cmp(&(cloud.points[a] - centroid).norm_squared())
+            .then(a.cmp(&b))
+    });
     let mut visited = vec![false; n];
     for &seed in &order {
         if visited[seed] {
@@ -149,10 +167,18 @@ pub fn orient_normals(cloud: &mut PointCloud, k: usize) {
         }
         visited[seed] = true;
         let mut heap = BinaryHeap::new();
-        let push = |heap: &mut BinaryHeap<Edge>, normals: &[Vector3<f64>], from: usize, adjacency: &[Vec<usize>], visited: &[bool]| {
+        let push = |heap: &mut BinaryHeap<Edge>,
+                    normals: &[Vector3<f64>],
+                    from: usize,
+                    adjacency: &[Vec<usize>],
+                    visited: &[bool]| {
             for &to in &adjacency[from] {
                 if !visited[to] {
-                    heap.push(Edge { cost: 1.0 - normals[from].dot(&normals[to]).abs(), from, to });
+                    heap.push(Edge {
+                        cost: 1.0 - normals[from].dot(&normals[to]).abs(),
+                        from,
+                        to,
+                    });
                 }
             }
         };
@@ -197,7 +223,11 @@ pub fn statistical_inliers(cloud: &PointCloud, k: usize, std_ratio: f64) -> Vec<
 pub fn dbscan(cloud: &PointCloud, eps: f64, min_points: usize) -> Vec<i32> {
     let n = cloud.len();
     let nn = Neighbors::new(&cloud.points);
-    let neighbours: Vec<Vec<usize>> = cloud.points.par_iter().map(|p| nn.within(p, eps).into_iter().map(|(i, _)| i).collect()).collect();
+    let neighbours: Vec<Vec<usize>> = cloud
+        .points
+        .par_iter()
+        .map(|p| nn.within(p, eps).into_iter().map(|(i, _)| i).collect())
+        .collect();
     const UNSEEN: i32 = -2;
     let mut labels = vec![UNSEEN; n];
     let mut cluster = 0;
@@ -244,7 +274,10 @@ mod tests {
                 Point3::new(r * rr * t.cos(), r * y, r * rr * t.sin())
             })
             .collect();
-        PointCloud { points, ..Default::default() }
+        PointCloud {
+            points,
+            ..Default::default()
+        }
     }
 
     #[test]
@@ -260,7 +293,11 @@ mod tests {
     #[test]
     fn voxel_downsample_averages() {
         let c = PointCloud {
-            points: vec![Point3::new(0.0, 0.0, 0.0), Point3::new(0.2, 0.0, 0.0), Point3::new(5.0, 0.0, 0.0)],
+            points: vec![
+                Point3::new(0.0, 0.0, 0.0),
+                Point3::new(0.2, 0.0, 0.0),
+                Point3::new(5.0, 0.0, 0.0),
+            ],
             colors: vec![[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]],
             normals: vec![],
         };
@@ -278,7 +315,9 @@ mod tests {
         assert!(!inliers.contains(&500));
         assert!(inliers.len() >= 490);
         let mut two = sphere(300, 0.05);
-        two.extend(&sphere(300, 0.05).transformed(&omniscan_core::Pose::translation(1.0, 0.0, 0.0)));
+        two.extend(
+            &sphere(300, 0.05).transformed(&omniscan_core::Pose::translation(1.0, 0.0, 0.0)),
+        );
         two.points.push(Point3::new(0.5, 0.0, 0.0));
         let labels = dbscan(&two, 0.02, 5);
         assert_eq!(labels[0], 0);

@@ -54,7 +54,11 @@ impl Bitset {
         Bitset(self.0.iter().zip(&other.0).map(|(a, b)| a & !b).collect())
     }
     pub fn first(&self) -> Option<usize> {
-        self.0.iter().enumerate().find(|(_, w)| **w != 0).map(|(k, w)| k * 64 + w.trailing_zeros() as usize)
+        self.0
+            .iter()
+            .enumerate()
+            .find(|(_, w)| **w != 0)
+            .map(|(k, w)| k * 64 + w.trailing_zeros() as usize)
     }
     pub fn iter(&self) -> impl Iterator<Item = usize> + '_ {
         self.0.iter().enumerate().flat_map(|(k, &w)| {
@@ -78,7 +82,9 @@ pub struct Graph {
 
 impl Graph {
     pub fn new(n: usize) -> Graph {
-        Graph { adjacency: vec![Bitset::new(n); n] }
+        Graph {
+            adjacency: vec![Bitset::new(n); n],
+        }
     }
     pub fn add_edge(&mut self, i: usize, j: usize) {
         self.adjacency[i].set(j);
@@ -155,7 +161,10 @@ fn greedy_clique(graph: &Graph, core: &[usize]) -> Vec<usize> {
         let mut clique = vec![v];
         let mut candidates = graph.adjacency[v].clone();
         loop {
-            let next = candidates.iter().filter(|&u| core[u] >= best.len()).max_by(|&a, &b| core[a].cmp(&core[b]).then(b.cmp(&a)));
+            let next = candidates
+                .iter()
+                .filter(|&u| core[u] >= best.len())
+                .max_by(|&a, &b| core[a].cmp(&core[b]).then(b.cmp(&a)));
             let Some(u) = next else { break };
             clique.push(u);
             candidates = candidates.and(&graph.adjacency[u]);
@@ -228,10 +237,19 @@ impl Search<'_> {
 /// A maximum clique, exact unless `time_limit` runs out (then the largest found).
 pub fn max_clique(graph: &Graph, time_limit: Duration) -> Clique {
     if graph.is_empty() {
-        return Clique { vertices: vec![], exact: true };
+        return Clique {
+            vertices: vec![],
+            exact: true,
+        };
     }
     let (core, order) = graph.cores();
-    let mut search = Search { graph, best: greedy_clique(graph, &core), deadline: Instant::now() + time_limit, steps: 0, timed_out: false };
+    let mut search = Search {
+        graph,
+        best: greedy_clique(graph, &core),
+        deadline: Instant::now() + time_limit,
+        steps: 0,
+        timed_out: false,
+    };
     // Root at each vertex in degeneracy order, with the neighbours later in the order.
     let mut later = Bitset::new(graph.len());
     for &v in &order {
@@ -257,7 +275,10 @@ pub fn max_clique(graph: &Graph, time_limit: Duration) -> Clique {
     }
     let mut vertices = search.best;
     vertices.sort_unstable();
-    Clique { vertices, exact: !search.timed_out }
+    Clique {
+        vertices,
+        exact: !search.timed_out,
+    }
 }
 
 /// Settings of the robust solver (TEASER++'s parameter names).
@@ -306,21 +327,34 @@ fn weighted_rotation(a: &[Vector3<f64>], b: &[Vector3<f64>], w: &[f64]) -> Rotat
         h += wi * x * y.transpose();
     }
     let svd = SVD::new(h, true, true);
-    let (Some(u), Some(vt)) = (svd.u, svd.v_t) else { return Rotation3::identity() };
+    let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
+        return Rotation3::identity();
+    };
     let v = vt.transpose();
     let d = (v * u.transpose()).determinant().signum();
-    Rotation3::from_matrix_unchecked(v * Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, d)) * u.transpose())
+    Rotation3::from_matrix_unchecked(
+        v * Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, d)) * u.transpose(),
+    )
 }
 
 /// GNC-TLS rotation from measurement pairs with noise bound `bound`.
-fn gnc_tls_rotation(a: &[Vector3<f64>], b: &[Vector3<f64>], bound: f64, s: &TeaserSettings) -> Rotation3<f64> {
+fn gnc_tls_rotation(
+    a: &[Vector3<f64>],
+    b: &[Vector3<f64>],
+    bound: f64,
+    s: &TeaserSettings,
+) -> Rotation3<f64> {
     let mut w = vec![1.0; a.len()];
     let bound2 = bound * bound * s.cbar2;
     let mut rotation = weighted_rotation(a, b, &w);
     let mut mu = 1.0;
     let mut previous_cost = f64::INFINITY;
     for iteration in 0..s.rotation_max_iterations {
-        let r2: Vec<f64> = a.iter().zip(b).map(|(x, y)| (y - rotation * x).norm_squared()).collect();
+        let r2: Vec<f64> = a
+            .iter()
+            .zip(b)
+            .map(|(x, y)| (y - rotation * x).norm_squared())
+            .collect();
         if iteration == 0 {
             let max_r2 = r2.iter().copied().fold(0.0, f64::max);
             mu = 1.0 / (2.0 * max_r2 / bound2 - 1.0);
@@ -358,7 +392,10 @@ pub fn tls_scalar(values: &[f64], bound: f64, cbar2: f64) -> f64 {
     if n == 0 {
         return 0.0;
     }
-    let mut events: Vec<(f64, i32, f64)> = values.iter().flat_map(|&x| [(x - bound, 1, x), (x + bound, -1, x)]).collect();
+    let mut events: Vec<(f64, i32, f64)> = values
+        .iter()
+        .flat_map(|&x| [(x - bound, 1, x), (x + bound, -1, x)])
+        .collect();
     events.sort_by(|a, b| a.0.total_cmp(&b.0).then(b.1.cmp(&a.1)));
     let (mut count, mut sum, mut sum2) = (0usize, 0.0, 0.0);
     let mut best = (f64::INFINITY, values[0]);
@@ -386,7 +423,11 @@ pub fn tls_scalar(values: &[f64], bound: f64, cbar2: f64) -> f64 {
 
 /// Solves for the rigid transform mapping `source[i]` onto `target[i]` for
 /// the inlier correspondences.
-pub fn teaser_solve(source: &[Point3<f64>], target: &[Point3<f64>], settings: &TeaserSettings) -> TeaserSolution {
+pub fn teaser_solve(
+    source: &[Point3<f64>],
+    target: &[Point3<f64>],
+    settings: &TeaserSettings,
+) -> TeaserSolution {
     let n = source.len().min(target.len());
     let bound = 2.0 * settings.noise_bound * settings.cbar2.sqrt();
     let mut graph = Graph::new(n);
@@ -402,24 +443,52 @@ pub fn teaser_solve(source: &[Point3<f64>], target: &[Point3<f64>], settings: &T
     let clique = max_clique(&graph, settings.max_clique_time);
     let members = &clique.vertices;
     if members.len() < 3 {
-        return TeaserSolution { pose: Pose::identity(), clique: members.clone(), clique_exact: clique.exact, inliers: vec![], valid: false };
+        return TeaserSolution {
+            pose: Pose::identity(),
+            clique: members.clone(),
+            clique_exact: clique.exact,
+            inliers: vec![],
+            valid: false,
+        };
     }
     // Chain of translation-invariant measurements through the clique.
     let m = members.len();
-    let a: Vec<Vector3<f64>> = (0..m).map(|k| source[members[(k + 1) % m]] - source[members[k]]).collect();
-    let b: Vec<Vector3<f64>> = (0..m).map(|k| target[members[(k + 1) % m]] - target[members[k]]).collect();
+    let a: Vec<Vector3<f64>> = (0..m)
+        .map(|k| source[members[(k + 1) % m]] - source[members[k]])
+        .collect();
+    let b: Vec<Vector3<f64>> = (0..m)
+        .map(|k| target[members[(k + 1) % m]] - target[members[k]])
+        .collect();
     let rotation = gnc_tls_rotation(&a, &b, 2.0 * settings.noise_bound, settings);
     let per_axis = settings.noise_bound * settings.cbar2.sqrt();
-    let offsets: Vec<Vector3<f64>> = members.iter().map(|&i| target[i].coords - rotation * source[i].coords).collect();
-    let t = Vector3::from_fn(|axis, _| tls_scalar(&offsets.iter().map(|o| o[axis]).collect::<Vec<_>>(), per_axis, settings.cbar2));
+    let offsets: Vec<Vector3<f64>> = members
+        .iter()
+        .map(|&i| target[i].coords - rotation * source[i].coords)
+        .collect();
+    let t = Vector3::from_fn(|axis, _| {
+        tls_scalar(
+            &offsets.iter().map(|o| o[axis]).collect::<Vec<_>>(),
+            per_axis,
+            settings.cbar2,
+        )
+    });
     let inliers: Vec<usize> = members
         .iter()
         .zip(&offsets)
         .filter(|(_, o)| (0..3).all(|k| (o[k] - t[k]).abs() <= per_axis))
         .map(|(&i, _)| i)
         .collect();
-    let pose = Pose::from_parts(Translation3::from(t), UnitQuaternion::from_rotation_matrix(&rotation));
-    TeaserSolution { pose, clique: members.clone(), clique_exact: clique.exact, valid: inliers.len() >= 3, inliers }
+    let pose = Pose::from_parts(
+        Translation3::from(t),
+        UnitQuaternion::from_rotation_matrix(&rotation),
+    );
+    TeaserSolution {
+        pose,
+        clique: members.clone(),
+        clique_exact: clique.exact,
+        valid: inliers.len() >= 3,
+        inliers,
+    }
 }
 
 #[cfg(test)]
@@ -463,7 +532,12 @@ mod tests {
             }
         }
         assert_eq!(max_clique(&k5, Duration::from_secs(1)).vertices.len(), 5);
-        assert_eq!(max_clique(&Graph::new(4), Duration::from_secs(1)).vertices.len(), 1);
+        assert_eq!(
+            max_clique(&Graph::new(4), Duration::from_secs(1))
+                .vertices
+                .len(),
+            1
+        );
     }
 
     #[test]
@@ -494,13 +568,27 @@ mod tests {
         let mut src = Vec::new();
         let mut dst = Vec::new();
         for i in 0..400 {
-            let p = Point3::new(rng.random::<f64>(), rng.random::<f64>(), rng.random::<f64>());
+            let p = Point3::new(
+                rng.random::<f64>(),
+                rng.random::<f64>(),
+                rng.random::<f64>(),
+            );
             src.push(p);
             if i % 20 == 0 {
-                let noise = Vector3::new(rng.random::<f64>() - 0.5, rng.random::<f64>() - 0.5, rng.random::<f64>() - 0.5) * 0.004;
+                let noise = Vector3::new(
+                    rng.random::<f64>() - 0.5,
+                    rng.random::<f64>() - 0.5,
+                    rng.random::<f64>() - 0.5,
+                ) * 0.004;
                 dst.push(truth * p + noise);
             } else {
-                dst.push(Point3::new(rng.random::<f64>(), rng.random::<f64>(), rng.random::<f64>()) * 2.0);
+                dst.push(
+                    Point3::new(
+                        rng.random::<f64>(),
+                        rng.random::<f64>(),
+                        rng.random::<f64>(),
+                    ) * 2.0,
+                );
             }
         }
         let s = teaser_solve(&src, &dst, &TeaserSettings::with_noise_bound(0.01));
@@ -508,6 +596,11 @@ mod tests {
         assert!(s.inliers.iter().all(|i| i % 20 == 0), "{:?}", s.inliers);
         assert!(s.inliers.len() >= 18);
         let (angle, dist) = omniscan_core::geometry::pose_difference(&s.pose, &truth);
-        assert!(angle.to_degrees() < 0.5 && dist < 0.01, "{} deg, {} m", angle.to_degrees(), dist);
+        assert!(
+            angle.to_degrees() < 0.5 && dist < 0.01,
+            "{} deg, {} m",
+            angle.to_degrees(),
+            dist
+        );
     }
 }
