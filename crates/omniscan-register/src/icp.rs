@@ -130,41 +130,243 @@ impl Registration {
 }
 
 /// A target cloud prepared for repeated registration.
+///
+/// Besides a k-d tree it keeps, once ICP asks for it, the 16 nearest
+/// neighbours of every target point. ICP's correspondence step then starts
+/// each query at the previous iteration's match and walks this graph
+/// downhill; the answer is exact when the distance found is under half the
+/// radius of the point's neighbour list (every closer point would have to be
+/// in that list), and otherwise the query falls back to the k-d tree. Since
+/// ICP moves the source a little per iteration, nearly every query is
+/// answered from a few dozen distances instead of a tree search. A lower
+/// bound on each source point's nearest distance (last distance minus how
+/// far the point moved) skips points that cannot have a correspondence.
 pub struct Target<'a> {
     pub cloud: &'a PointCloud,
     pub neighbors: Neighbors,
+    graph: std::sync::OnceLock<NeighborGraph>,
 }
+
+/// The `GRAPH_K` nearest neighbours of every point (itself included, nearest
+/// first) with their coordinates stored inline, so a walk reads each list
+/// from one contiguous block, and the squared distance to the farthest of them.
+struct NeighborGraph {
+    lists: Vec<GraphEntry>,
+    reach2: Vec<f64>,
+}
+
+#[derive(Clone, Copy)]
+struct GraphEntry {
+    id: u32,
+    x: f32,
+    y: f32,
+    z: f32,
+}
+
+const GRAPH_K: usize = 16;
 
 impl<'a> Target<'a> {
     pub fn new(cloud: &'a PointCloud) -> Target<'a> {
         Target {
             cloud,
             neighbors: Neighbors::new(&cloud.points),
+            graph: std::sync::OnceLock::new(),
+        }
+    }
+
+    fn graph(&self) -> &NeighborGraph {
+        self.graph.get_or_init(|| {
+            let k = GRAPH_K.min(self.cloud.len());
+            let rows: Vec<(Vec<u32>, f64)> = self
+                .cloud
+                .points
+                .par_iter()
+                .map(|p| {
+                    let r = self.neighbors.knn(p, k);
+                    // With every point in the list, nothing lies outside it.
+                    let reach = if k < GRAPH_K {
+                        f64::INFINITY
+                    } else {
+                        r.last().map_or(0.0, |x| x.1)
+                    };
+                    let mut ids: Vec<u32> = r.iter().map(|x| x.0 as u32).collect();
+                    // Keep the point itself first so a walk can stay where it is.
+                    ids.resize(GRAPH_K, ids.last().copied().unwrap_or(0));
+                    (ids, reach)
+                })
+                .collect();
+            let mut lists = Vec::with_capacity(rows.len() * GRAPH_K);
+            let mut reach2 = Vec::with_capacity(rows.len());
+            let pts = &self.cloud.points;
+            for (ids, r) in rows {
+                lists.extend(ids.into_iter().map(|id| {
+                    let p = pts[id as usize];
+                    GraphEntry {
+                        id,
+                        x: p.x as f32,
+                        y: p.y as f32,
+                        z: p.z as f32,
+                    }
+                }));
+                reach2.push(r);
+            }
+            NeighborGraph { lists, reach2 }
+        })
+    }
+
+    /// Searches the nearest target point to `q` from the target point
+    /// `start` and returns a certificate for it (see [`Hint`]).
+    fn search(&self, q: &Point3<f64>, start: u32) -> Hint {
+        let g = self.graph();
+        let pts = &self.cloud.points;
+        let mut cur = start as usize;
+        // The walk runs in f32 on the inline copies...
+        let (qx, qy, qz) = (q.x as f32, q.y as f32, q.z as f32);
+        let mut best = f32::INFINITY;
+        loop {
+            let mut next = cur;
+            for e in &g.lists[cur * GRAPH_K..(cur + 1) * GRAPH_K] {
+                let (dx, dy, dz) = (e.x - qx, e.y - qy, e.z - qz);
+                let d = dx * dx + dy * dy + dz * dz;
+                if d < best {
+                    best = d;
+                    next = e.id as usize;
+                }
+            }
+            if next == cur {
+                break;
+            }
+            cur = next;
+        }
+        // ...and the final list is settled in f64: nearest and second nearest.
+        let list = &g.lists[cur * GRAPH_K..(cur + 1) * GRAPH_K];
+        let (mut d1, mut d2, mut nearest) = (f64::INFINITY, f64::INFINITY, cur);
+        for e in list {
+            let d = (pts[e.id as usize] - q).norm_squared();
+            if d < d1 {
+                d2 = d1;
+                d1 = d;
+                nearest = e.id as usize;
+            } else if d < d2 && e.id as usize != nearest {
+                d2 = d;
+            }
+        }
+        let (d1, d2) = (d1.sqrt(), d2.sqrt());
+        // Every point within reach − d1 of q is in the list, so the list's
+        // nearest is the true nearest if 2·d1 < reach, and the second nearest
+        // is at least min(d2, reach − d1) away.
+        let reach = g.reach2[cur].sqrt();
+        if 2.0 * d1 < reach {
+            return Hint {
+                target: nearest as u32,
+                nearest: d1,
+                gap: d2.min(reach - d1) - d1,
+                moved: 0.0,
+            };
+        }
+        let r = self.neighbors.knn(q, 2);
+        match (r.first(), r.get(1)) {
+            (Some(&(j, e1)), second) => {
+                let e2 = second.map_or(f64::INFINITY, |s| s.1.sqrt());
+                Hint {
+                    target: j as u32,
+                    nearest: e1.sqrt(),
+                    gap: e2 - e1.sqrt(),
+                    moved: 0.0,
+                }
+            }
+            _ => Hint {
+                target: 0,
+                nearest: f64::INFINITY,
+                gap: 0.0,
+                moved: 0.0,
+            },
         }
     }
 }
 
 const CHUNK: usize = 2048;
 
-/// Correspondences (source index, target index, distance²) of `points` in `target`.
+/// What ICP knows of a source point's nearest target point: at the last
+/// search, `target` was nearest at distance `nearest`, and every other target
+/// point was at least `gap` farther; since then the point has moved by at
+/// most `moved`. While `gap > 2·moved` the nearest cannot have changed, and
+/// while `nearest − moved` exceeds the correspondence distance the point has
+/// no correspondence, so late ICP iterations, which move points very little,
+/// need almost no searching. The answers are exactly those of a fresh search.
+#[derive(Clone, Copy)]
+struct Hint {
+    target: u32,
+    nearest: f64,
+    gap: f64,
+    moved: f64,
+}
+
+/// Correspondences (source index, target index, distance²) of `points` in
+/// `target`. `hints` carries each point's state between calls and `moved_by`
+/// how far each point moved since the last call (empty on the first).
 fn correspondences(
     points: &[Point3<f64>],
     target: &Target,
     max_distance: f64,
+    hints: &mut Vec<Hint>,
+    moved_by: &[f64],
 ) -> Vec<(usize, usize, f64)> {
-    let max2 = max_distance * max_distance;
+    if hints.len() != points.len() {
+        // First call: k-d tree queries seed the hints.
+        *hints = points
+            .par_iter()
+            .map(|p| {
+                let r = target.neighbors.knn(p, 2);
+                match (r.first(), r.get(1)) {
+                    (Some(&(j, e1)), second) => {
+                        let e2 = second.map_or(f64::INFINITY, |s| s.1.sqrt());
+                        Hint {
+                            target: j as u32,
+                            nearest: e1.sqrt(),
+                            gap: e2 - e1.sqrt(),
+                            moved: 0.0,
+                        }
+                    }
+                    _ => Hint {
+                        target: 0,
+                        nearest: f64::INFINITY,
+                        gap: 0.0,
+                        moved: 0.0,
+                    },
+                }
+            })
+            .collect();
+        return hints
+            .iter()
+            .enumerate()
+            .filter(|(_, h)| h.nearest <= max_distance)
+            .map(|(i, h)| (i, h.target as usize, h.nearest * h.nearest))
+            .collect();
+    }
+    let cloud = target.cloud;
     points
         .par_chunks(CHUNK)
+        .zip(hints.par_chunks_mut(CHUNK))
         .enumerate()
-        .map(|(c, chunk)| {
-            chunk
-                .iter()
-                .enumerate()
-                .filter_map(|(k, p)| {
-                    let (j, d2) = target.neighbors.nearest(p)?;
-                    (d2 <= max2).then_some((c * CHUNK + k, j, d2))
-                })
-                .collect::<Vec<_>>()
+        .map(|(c, (chunk, hint))| {
+            let mut out = Vec::new();
+            for (k, (p, h)) in chunk.iter().zip(hint.iter_mut()).enumerate() {
+                let i = c * CHUNK + k;
+                h.moved += moved_by[i];
+                if h.nearest - h.moved > max_distance {
+                    continue;
+                }
+                if h.gap <= 2.0 * h.moved {
+                    *h = target.search(p, h.target);
+                }
+                let j = h.target as usize;
+                let d2 = (cloud.points[j] - p).norm_squared();
+                if d2 <= max_distance * max_distance {
+                    out.push((i, j, d2));
+                }
+            }
+            out
         })
         .collect::<Vec<_>>()
         .concat()
@@ -189,8 +391,19 @@ pub fn evaluate(
     max_distance: f64,
     transformation: &Pose,
 ) -> Registration {
-    let moved: Vec<Point3<f64>> = source.points.iter().map(|p| transformation * p).collect();
-    let corr = correspondences(&moved, target, max_distance);
+    let max2 = max_distance * max_distance;
+    let corr: Vec<(usize, usize, f64)> = source
+        .points
+        .par_iter()
+        .enumerate()
+        .filter_map(|(i, p)| {
+            target
+                .neighbors
+                .nearest(&(transformation * p))
+                .filter(|r| r.1 <= max2)
+                .map(|(j, d2)| (i, j, d2))
+        })
+        .collect();
     let (fitness, inlier_rmse) = score(source.len(), &corr);
     Registration {
         transformation: *transformation,
@@ -357,7 +570,9 @@ pub fn icp(
     let tc = target.cloud;
     let mut transformation = *init;
     let mut moved: Vec<Point3<f64>> = source.points.iter().map(|p| transformation * p).collect();
-    let mut corr = correspondences(&moved, target, max_distance);
+    let mut hints = Vec::new();
+    let mut corr = correspondences(&moved, target, max_distance, &mut hints, &[]);
+    let mut moved_by = vec![0.0; moved.len()];
     let (mut fitness, mut rmse) = score(source.len(), &corr);
     let mut iterations = 0;
     for _ in 0..criteria.max_iteration {
@@ -407,11 +622,17 @@ pub fn icp(
             }
         };
         transformation = delta * transformation;
-        for (m, p) in moved.iter_mut().zip(&source.points) {
-            *m = transformation * p;
-        }
+        moved
+            .par_iter_mut()
+            .zip(moved_by.par_iter_mut())
+            .zip(source.points.par_iter())
+            .for_each(|((m, by), p)| {
+                let next = transformation * p;
+                *by = (next - *m).norm();
+                *m = next;
+            });
         iterations += 1;
-        corr = correspondences(&moved, target, max_distance);
+        corr = correspondences(&moved, target, max_distance, &mut hints, &moved_by);
         let (f, r) = score(source.len(), &corr);
         let converged = (fitness - f).abs() < criteria.relative_fitness
             && (rmse - r).abs() < criteria.relative_rmse;

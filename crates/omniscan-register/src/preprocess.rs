@@ -17,7 +17,7 @@ use crate::neighbors::Neighbors;
 /// Averages the points (and colours, normals) that fall in each voxel of
 /// `voxel` size. Output is ordered by voxel index, so it is deterministic.
 pub fn voxel_downsample(cloud: &PointCloud, voxel: f64) -> PointCloud {
-    if cloud.is_empty() || !(voxel > 0.0) {
+    if cloud.is_empty() || voxel.is_nan() || voxel <= 0.0 {
         return cloud.clone();
     }
     let mut lo = cloud.points[0];

@@ -207,7 +207,7 @@ impl Search<'_> {
 
     fn expand(&mut self, clique: &mut Vec<usize>, mut p: Bitset) {
         self.steps += 1;
-        if self.steps % 256 == 0 && Instant::now() > self.deadline {
+        if self.steps.is_multiple_of(256) && Instant::now() > self.deadline {
             self.timed_out = true;
         }
         if self.timed_out {

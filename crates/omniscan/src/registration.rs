@@ -1,0 +1,513 @@
+//! `omniscan align` and `omniscan bench registration`.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use nalgebra::{Translation3, Unit, UnitQuaternion, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde_json::{Value, json};
+
+use omniscan_core::Pose;
+use omniscan_core::geometry::{pose_difference, pose_from_rows, pose_to_rows};
+use omniscan_register::PointCloud;
+use omniscan_register::cloud::read_cloud;
+use omniscan_register::fpfh::compute_fpfh;
+use omniscan_register::global::{
+    GlobalSettings, global_registration, median_spacing, refine_from_initial,
+};
+use omniscan_register::icp::{
+    Criteria, Estimator, Kernel, Registration, Target, icp, multiscale_colored_icp,
+};
+use omniscan_register::preprocess::{estimate_normals, voxel_downsample};
+
+/// Registration methods of `omniscan align`.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum Method {
+    /// Point-to-point ICP.
+    Icp,
+    /// Point-to-plane ICP.
+    Plane,
+    /// Colored ICP (needs colours on both clouds).
+    Colored,
+    /// The paper's rule: ICP and colored ICP from the initial transform, the better fitness wins.
+    Auto,
+    /// FPFH features, TEASER++-style and RANSAC hypotheses, refined by ICP; no initial transform needed.
+    Global,
+}
+
+/// Reads a transform file: `{"transform": 4x4}` or a bare 4x4 row-major array.
+pub fn read_transform(path: &Path) -> Result<Pose> {
+    let v: Value = serde_json::from_str(
+        &std::fs::read_to_string(path)
+            .with_context(|| format!("cannot read {}", path.display()))?,
+    )
+    .with_context(|| format!("{} is not JSON", path.display()))?;
+    let m = v.get("transform").unwrap_or(&v);
+    let rows: [[f64; 4]; 4] = serde_json::from_value(m.clone()).with_context(|| {
+        format!(
+            "{}: expected a 4x4 matrix (or {{\"transform\": 4x4}})",
+            path.display()
+        )
+    })?;
+    pose_from_rows(&rows).with_context(|| format!("{}: transform", path.display()))
+}
+
+pub struct AlignArgs {
+    pub source: PathBuf,
+    pub target: PathBuf,
+    pub out: PathBuf,
+    pub init: Option<PathBuf>,
+    pub method: Method,
+    pub max_distance: Option<f64>,
+    pub voxel: Option<f64>,
+    pub iterations: usize,
+    pub json: bool,
+}
+
+fn with_normals(cloud: &PointCloud) -> PointCloud {
+    let mut c = cloud.clone();
+    if !c.has_normals() {
+        let spacing = median_spacing(&c);
+        estimate_normals(&mut c, (4.0 * spacing).max(1e-12), 30);
+    }
+    c
+}
+
+pub fn align(args: AlignArgs) -> Result<()> {
+    let source = read_cloud(&args.source)?;
+    let target = read_cloud(&args.target)?;
+    let init = match &args.init {
+        Some(p) => read_transform(p)?,
+        None => Pose::identity(),
+    };
+    let max_distance = args.max_distance.unwrap_or(target.extent() / 50.0);
+    if max_distance.is_nan() || max_distance <= 0.0 || max_distance.is_infinite() {
+        bail!("--max-distance must be positive (units of the clouds), got {max_distance}");
+    }
+    let criteria = Criteria {
+        max_iteration: args.iterations,
+        ..Criteria::default()
+    };
+    let start = Instant::now();
+    let (method, registration, candidates): (String, Registration, Value) = match args.method {
+        Method::Icp | Method::Plane | Method::Colored => {
+            let estimator = match args.method {
+                Method::Icp => Estimator::PointToPoint,
+                Method::Plane => Estimator::PointToPlane,
+                _ => Estimator::COLORED,
+            };
+            let t = if matches!(estimator, Estimator::PointToPoint) {
+                target.clone()
+            } else {
+                with_normals(&target)
+            };
+            let r = icp(
+                &source,
+                &Target::new(&t),
+                max_distance,
+                &init,
+                estimator,
+                Kernel::L2,
+                &criteria,
+            )?;
+            (estimator.name().into(), r, json!([]))
+        }
+        Method::Auto => {
+            let (best, all) =
+                refine_from_initial(&source, &target, &init, max_distance, &criteria)?;
+            (
+                best.method.into(),
+                best.registration,
+                serde_json::to_value(&all)?,
+            )
+        }
+        Method::Global => {
+            let settings = GlobalSettings {
+                voxel: args.voxel,
+                ..GlobalSettings::default()
+            };
+            let r = global_registration(&source, &target, &settings)?;
+            let summary = json!({"voxel": r.voxel, "correspondences": r.correspondences, "clique_size": r.clique_size, "clique_exact": r.clique_exact, "hypotheses": r.candidates});
+            (
+                format!("global/{}", r.best.method),
+                r.best.registration,
+                summary,
+            )
+        }
+    };
+    let report = json!({
+        "transform": pose_to_rows(&registration.transformation),
+        "fitness": registration.fitness,
+        "inlier_rmse": registration.inlier_rmse,
+        "method": method,
+        "max_distance": max_distance,
+        "iterations": registration.iterations,
+        "correspondences": registration.correspondences,
+        "source": args.source,
+        "target": args.target,
+        "source_points": source.len(),
+        "target_points": target.len(),
+        "seconds": start.elapsed().as_secs_f64(),
+        "details": candidates,
+        "units": "transform maps SOURCE into TARGET, in the clouds' own units (metres for captures)",
+    });
+    omniscan_core::io::write_json_atomic(&args.out, &report)?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        println!(
+            "{method}: fitness {:.4}, inlier RMSE {:.6}, {} iterations, {:.2} s; wrote {}",
+            registration.fitness,
+            registration.inlier_rmse,
+            registration.iterations,
+            start.elapsed().as_secs_f64(),
+            args.out.display()
+        );
+    }
+    Ok(())
+}
+
+pub struct BenchArgs {
+    pub frag: PathBuf,
+    pub splats: Option<PathBuf>,
+    pub open3d_python: Option<PathBuf>,
+    pub trials: usize,
+    pub json: bool,
+}
+
+/// A random disjoint split of a cloud into two halves.
+fn split(cloud: &PointCloud, seed: u64) -> (PointCloud, PointCloud) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let (a, b): (Vec<usize>, Vec<usize>) = (0..cloud.len()).partition(|_| rng.random_bool(0.5));
+    (cloud.select(&a), cloud.select(&b))
+}
+
+fn add_noise(cloud: &mut PointCloud, sigma: f64, seed: u64) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut normal = || {
+        let (u1, u2): (f64, f64) = (rng.random::<f64>().max(1e-12), rng.random());
+        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+    };
+    for p in &mut cloud.points {
+        *p += Vector3::new(normal(), normal(), normal()) * sigma;
+    }
+}
+
+fn median_of<T>(runs: usize, mut f: impl FnMut() -> Result<T>) -> Result<(f64, T)> {
+    let mut times = Vec::new();
+    let mut last = None;
+    for _ in 0..runs {
+        let t = Instant::now();
+        last = Some(f()?);
+        times.push(t.elapsed().as_secs_f64());
+    }
+    times.sort_by(f64::total_cmp);
+    Ok((times[times.len() / 2], last.unwrap()))
+}
+
+const OPEN3D_SCRIPT: &str = r#"
+import json, sys, time
+import numpy as np
+import open3d as o3d
+reg = o3d.pipelines.registration
+d = json.loads(sys.argv[1])
+src = o3d.io.read_point_cloud(d["source"]); tgt = o3d.io.read_point_cloud(d["target"])
+fp = o3d.io.read_point_cloud(d["fpfh_cloud"])
+def timed(f, runs=3):
+    ts = []; out = None
+    for _ in range(runs):
+        t = time.perf_counter(); out = f(); ts.append(time.perf_counter() - t)
+    return sorted(ts)[len(ts) // 2], out
+res = {}
+crit = reg.ICPConvergenceCriteria(1e-6, 1e-6, d["iterations"])
+for name, est in [("colored", reg.TransformationEstimationForColoredICP()), ("plane", reg.TransformationEstimationPointToPlane()), ("icp", reg.TransformationEstimationPointToPoint())]:
+    if name == "colored":
+        f = lambda: reg.registration_colored_icp(src, tgt, d["max_distance"], np.eye(4), est, crit)
+    else:
+        f = lambda: reg.registration_icp(src, tgt, d["max_distance"], np.eye(4), est, crit)
+    t, r = timed(f)
+    res[name] = {"seconds": t, "transform": np.asarray(r.transformation).tolist(), "fitness": r.fitness, "inlier_rmse": r.inlier_rmse}
+param = o3d.geometry.KDTreeSearchParamHybrid(radius=d["fpfh_radius"], max_nn=100)
+t, f = timed(lambda: reg.compute_fpfh_feature(fp, param))
+res["fpfh"] = {"seconds": t, "points": len(fp.points), "row_sum_mean": float(np.asarray(f.data).sum(axis=0).mean())}
+print(json.dumps(res))
+"#;
+
+pub fn bench(args: BenchArgs) -> Result<()> {
+    let mut report = serde_json::Map::new();
+    let frag = read_cloud(&args.frag)?;
+    let centre = frag.centroid();
+    let frag = frag.transformed(&Pose::translation(-centre.x, -centre.y, -centre.z));
+    let spacing = median_spacing(&frag);
+    let (mut target, mut source) = split(&frag, 1);
+    add_noise(&mut source, 0.5 * spacing, 2);
+    let perturb = Pose::from_parts(
+        Translation3::new(0.01, 0.0, 0.0),
+        UnitQuaternion::from_axis_angle(
+            &Unit::new_normalize(Vector3::new(0.3, -0.5, 0.81)),
+            10f64.to_radians(),
+        ),
+    );
+    let source = source.transformed(&perturb);
+    estimate_normals(&mut target, 4.0 * spacing, 30);
+    let mut source = source;
+    estimate_normals(&mut source, 4.0 * spacing, 30);
+    let tmp = tempfile::tempdir()?;
+    let (src_path, tgt_path, fp_path) = (
+        tmp.path().join("source.ply"),
+        tmp.path().join("target.ply"),
+        tmp.path().join("fpfh.ply"),
+    );
+    omniscan_register::cloud::write_ply(&src_path, &source)?;
+    omniscan_register::cloud::write_ply(&tgt_path, &target)?;
+    // Both sides read the same files, so they register identical inputs.
+    let source = read_cloud(&src_path)?;
+    let target = read_cloud(&tgt_path)?;
+    let fpfh_voxel = 3.0 * spacing;
+    let mut fp_cloud = voxel_downsample(&target, fpfh_voxel);
+    estimate_normals(&mut fp_cloud, 2.0 * fpfh_voxel, 30);
+    omniscan_register::cloud::write_ply(&fp_path, &fp_cloud)?;
+    let fp_cloud = read_cloud(&fp_path)?;
+    let max_distance = 0.016;
+    let iterations = 30;
+    let truth = perturb.inverse();
+    let mut ours = serde_json::Map::new();
+    for (name, est) in [
+        ("colored", Estimator::COLORED),
+        ("plane", Estimator::PointToPlane),
+        ("icp", Estimator::PointToPoint),
+    ] {
+        let crit = Criteria {
+            max_iteration: iterations,
+            ..Criteria::default()
+        };
+        // The target's search structures are built inside the timing, as Open3D builds its k-d tree inside each call.
+        let (t, r) = median_of(3, || {
+            Ok(icp(
+                &source,
+                &Target::new(&target),
+                max_distance,
+                &Pose::identity(),
+                est,
+                Kernel::L2,
+                &crit,
+            )?)
+        })?;
+        let (rot, trans) = pose_difference(&r.transformation, &truth);
+        ours.insert(name.into(), json!({"seconds": t, "fitness": r.fitness, "inlier_rmse": r.inlier_rmse, "rotation_error_deg": rot.to_degrees(), "translation_error_m": trans, "iterations": r.iterations, "transform": pose_to_rows(&r.transformation)}));
+    }
+    // Open3D's tutorial schedule for colored ICP, scaled to this cloud's spacing.
+    let voxels = [8.0 * spacing, 4.0 * spacing, 2.0 * spacing];
+    let (t, r) = median_of(3, || {
+        Ok(multiscale_colored_icp(
+            &source,
+            &target,
+            &Pose::identity(),
+            &voxels,
+            &[50, 30, 14],
+        )?)
+    })?;
+    let (rot, trans) = pose_difference(&r.transformation, &truth);
+    ours.insert("colored_multiscale".into(), json!({"seconds": t, "fitness": r.fitness, "inlier_rmse": r.inlier_rmse, "rotation_error_deg": rot.to_degrees(), "translation_error_m": trans, "voxels_m": voxels}));
+    let (t, f) = median_of(3, || Ok(compute_fpfh(&fp_cloud, 5.0 * fpfh_voxel, 100)))?;
+    ours.insert("fpfh".into(), json!({"seconds": t, "points": fp_cloud.len(), "row_sum_mean": f.iter().map(|r| r.iter().sum::<f32>() as f64).sum::<f64>() / f.len() as f64}));
+    report.insert("frag_115_local".into(), json!({"points": [source.len(), target.len()], "spacing_m": spacing, "max_distance_m": max_distance, "iterations": iterations, "omniscan": ours}));
+
+    if let Some(py) = &args.open3d_python {
+        let input = json!({"source": src_path, "target": tgt_path, "fpfh_cloud": fp_path, "max_distance": max_distance, "iterations": iterations, "fpfh_radius": 5.0 * fpfh_voxel});
+        let out = std::process::Command::new(py)
+            .arg("-c")
+            .arg(OPEN3D_SCRIPT)
+            .arg(input.to_string())
+            .output()
+            .with_context(|| format!("cannot run {}", py.display()))?;
+        if !out.status.success() {
+            bail!(
+                "the Open3D baseline failed: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        let o3d: Value = serde_json::from_slice(&out.stdout).context("Open3D baseline output")?;
+        let mut table = Vec::new();
+        for name in ["colored", "plane", "icp", "fpfh"] {
+            let ours_t = ours[name]["seconds"].as_f64().unwrap();
+            let theirs_t = o3d[name]["seconds"].as_f64().unwrap();
+            let mut row = json!({"method": name, "omniscan_s": ours_t, "open3d_s": theirs_t, "speedup": theirs_t / ours_t});
+            if name != "fpfh" {
+                let m: [[f64; 4]; 4] = serde_json::from_value(o3d[name]["transform"].clone())?;
+                let theirs = pose_from_rows(&m)?;
+                let (rot, trans) = pose_difference(&theirs, &truth);
+                let ours_rows: [[f64; 4]; 4] =
+                    serde_json::from_value(ours[name]["transform"].clone())?;
+                let (drot, dtrans) = pose_difference(&pose_from_rows(&ours_rows)?, &theirs);
+                row["open3d_rotation_error_deg"] = json!(rot.to_degrees());
+                row["open3d_translation_error_m"] = json!(trans);
+                row["open3d_fitness"] = o3d[name]["fitness"].clone();
+                row["omniscan_fitness"] = ours[name]["fitness"].clone();
+                row["omniscan_rotation_error_deg"] = ours[name]["rotation_error_deg"].clone();
+                row["difference_to_open3d_deg"] = json!(drot.to_degrees());
+                row["difference_to_open3d_m"] = json!(dtrans);
+            } else {
+                row["open3d_row_sum"] = o3d[name]["row_sum_mean"].clone();
+                row["omniscan_row_sum"] = ours[name]["row_sum_mean"].clone();
+            }
+            table.push(row);
+        }
+        report.insert("versus_open3d".into(), json!(table));
+    } else {
+        report.insert(
+            "versus_open3d".into(),
+            json!("not measured: pass --open3d-python PATH (a Python with open3d 0.20)"),
+        );
+    }
+
+    // Global registration: random rotations of disjoint halves.
+    let mut global = Vec::new();
+    let mut datasets: Vec<(String, PointCloud)> = vec![("frag_115".into(), frag.clone())];
+    if let Some(dir) = &args.splats {
+        let mut files: Vec<PathBuf> = std::fs::read_dir(dir)?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|e| e == "ply"))
+            .collect();
+        files.sort();
+        for f in files {
+            datasets.push((
+                f.file_stem().unwrap().to_string_lossy().into(),
+                read_cloud(&f)?,
+            ));
+        }
+    }
+    let mut all_ok = 0;
+    let mut all = 0;
+    for (name, cloud) in datasets.iter().filter(|_| args.trials > 0) {
+        let (target, half) = split(cloud, 3);
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let mut errors = Vec::new();
+        let mut times = Vec::new();
+        let extent = cloud.extent();
+        for trial in 0..args.trials {
+            let axis = Vector3::new(
+                rng.random::<f64>() - 0.5,
+                rng.random::<f64>() - 0.5,
+                rng.random::<f64>() - 0.5,
+            );
+            let angle = rng.random::<f64>() * std::f64::consts::PI;
+            let shift = Vector3::new(
+                rng.random::<f64>() - 0.5,
+                rng.random::<f64>() - 0.5,
+                rng.random::<f64>() - 0.5,
+            ) * extent;
+            let truth = Pose::from_parts(
+                Translation3::from(shift),
+                UnitQuaternion::from_axis_angle(&Unit::new_normalize(axis), angle),
+            );
+            let source = half.transformed(&truth.inverse());
+            let t = Instant::now();
+            let result = global_registration(
+                &source,
+                &target,
+                &GlobalSettings {
+                    seed: trial as u64,
+                    ..GlobalSettings::default()
+                },
+            );
+            times.push(t.elapsed().as_secs_f64());
+            match result {
+                Ok(r) => errors.push(
+                    pose_difference(&r.best.registration.transformation, &truth)
+                        .0
+                        .to_degrees(),
+                ),
+                Err(e) => {
+                    eprintln!("global {name} trial {trial}: {e}");
+                    errors.push(180.0);
+                }
+            }
+        }
+        let ok = errors.iter().filter(|&&e| e <= 0.5).count();
+        all_ok += ok;
+        all += errors.len();
+        let max_t = times.iter().copied().fold(0.0, f64::max);
+        let mut sorted = errors.clone();
+        sorted.sort_by(f64::total_cmp);
+        global.push(json!({"data": name, "points": cloud.len(), "trials": errors.len(), "within_0_5_deg": ok, "median_error_deg": sorted[sorted.len() / 2], "max_error_deg": sorted.last(), "max_seconds": max_t, "mean_seconds": times.iter().sum::<f64>() / times.len() as f64}));
+        eprintln!(
+            "global {name}: {ok}/{} within 0.5°, max {:.2} s",
+            errors.len(),
+            max_t
+        );
+    }
+    report.insert(
+        "global".into(),
+        json!({"per_dataset": global, "success_rate": all_ok as f64 / all.max(1) as f64}),
+    );
+    let report = Value::Object(report);
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        print_bench(&report);
+    }
+    Ok(())
+}
+
+fn print_bench(report: &Value) {
+    let local = &report["frag_115_local"]["omniscan"];
+    println!(
+        "frag_115 halves, 10°/1 cm perturbation, {} iterations:",
+        report["frag_115_local"]["iterations"]
+    );
+    for name in ["colored", "colored_multiscale", "plane", "icp"] {
+        let r = &local[name];
+        println!(
+            "  {name:18} {:.3} s  fitness {:.4}  rotation error {:.4}°  translation error {:.2} mm",
+            r["seconds"].as_f64().unwrap_or(0.0),
+            r["fitness"].as_f64().unwrap_or(0.0),
+            r["rotation_error_deg"].as_f64().unwrap_or(0.0),
+            r["translation_error_m"].as_f64().unwrap_or(0.0) * 1e3
+        );
+    }
+    println!(
+        "  fpfh     {:.3} s  ({} points)",
+        local["fpfh"]["seconds"].as_f64().unwrap_or(0.0),
+        local["fpfh"]["points"]
+    );
+    match &report["versus_open3d"] {
+        Value::Array(rows) => {
+            println!("versus Open3D (same inputs, same run, median of 3):");
+            println!(
+                "  {:8} {:>10} {:>10} {:>8}",
+                "method", "omniscan s", "open3d s", "speedup"
+            );
+            for r in rows {
+                println!(
+                    "  {:8} {:>10.3} {:>10.3} {:>7.2}x",
+                    r["method"].as_str().unwrap_or(""),
+                    r["omniscan_s"].as_f64().unwrap_or(0.0),
+                    r["open3d_s"].as_f64().unwrap_or(0.0),
+                    r["speedup"].as_f64().unwrap_or(0.0)
+                );
+            }
+        }
+        other => println!("versus Open3D: {other}"),
+    }
+    println!("global registration (rotation error after ICP <= 0.5°):");
+    if let Value::Array(rows) = &report["global"]["per_dataset"] {
+        for r in rows {
+            println!(
+                "  {:20} {}/{}  median {:.3}°  max {:.2}°  max {:.2} s",
+                r["data"].as_str().unwrap_or(""),
+                r["within_0_5_deg"],
+                r["trials"],
+                r["median_error_deg"].as_f64().unwrap_or(0.0),
+                r["max_error_deg"].as_f64().unwrap_or(0.0),
+                r["max_seconds"].as_f64().unwrap_or(0.0)
+            );
+        }
+    }
+    println!(
+        "  success rate {:.1}%",
+        report["global"]["success_rate"].as_f64().unwrap_or(0.0) * 100.0
+    );
+}
