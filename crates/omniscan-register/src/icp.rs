@@ -178,11 +178,10 @@ impl<'a> Target<'a> {
         self.graph.get_or_init(|| {
             let k = GRAPH_K.min(self.cloud.len());
             let rows: Vec<(Vec<u32>, f64)> = self
-                .cloud
-                .points
-                .par_iter()
-                .map(|p| {
-                    let r = self.neighbors.knn(p, k);
+                .neighbors
+                .knn_batch(&self.cloud.points, k)
+                .into_iter()
+                .map(|r| {
                     // With every point in the list, nothing lies outside it.
                     let reach = if k < GRAPH_K {
                         f64::INFINITY
@@ -351,6 +350,10 @@ fn correspondences(
         .enumerate()
         .map(|(c, (chunk, hint))| {
             let mut out = Vec::new();
+            // Scans store neighbouring points next to each other, so the
+            // previous point's fresh match is often a better start than this
+            // point's stale one when everything moved a lot.
+            let mut last: Option<u32> = None;
             for (k, (p, h)) in chunk.iter().zip(hint.iter_mut()).enumerate() {
                 let i = c * CHUNK + k;
                 h.moved += moved_by[i];
@@ -358,8 +361,16 @@ fn correspondences(
                     continue;
                 }
                 if h.gap <= 2.0 * h.moved {
-                    *h = target.search(p, h.target);
+                    let mut start = h.target;
+                    if let Some(l) = last
+                        && (cloud.points[l as usize] - p).norm_squared()
+                            < (cloud.points[start as usize] - p).norm_squared()
+                    {
+                        start = l;
+                    }
+                    *h = target.search(p, start);
                 }
+                last = Some(h.target);
                 let j = h.target as usize;
                 let d2 = (cloud.points[j] - p).norm_squared();
                 if d2 <= max_distance * max_distance {

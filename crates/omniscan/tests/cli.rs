@@ -181,3 +181,130 @@ fn bad_inputs_fail_with_a_message_naming_the_problem() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("--object-scale"));
 }
+
+/// A wavy coloured patch written as an ASCII PLY, optionally moved.
+fn write_patch(path: &Path, motion: &dyn Fn([f64; 3]) -> [f64; 3], colors: bool) {
+    let mut rows = Vec::new();
+    for i in 0..90 {
+        for j in 0..90 {
+            let (u, v) = (i as f64 / 89.0 * 0.1 - 0.05, j as f64 / 89.0 * 0.1 - 0.05);
+            let z =
+                0.01 * (u * 60.0).sin() * (v * 45.0).cos() + 0.006 * (u * 23.0 + v * 11.0).sin();
+            let p = motion([u, v, z]);
+            let t = 0.5 + 0.5 * (u * 90.0).sin() * (v * 70.0).cos();
+            if colors {
+                rows.push(format!(
+                    "{} {} {} {} {} {}",
+                    p[0],
+                    p[1],
+                    p[2],
+                    (t * 255.0) as u8,
+                    (100.0 + 80.0 * t) as u8,
+                    ((1.0 - t) * 255.0) as u8
+                ));
+            } else {
+                rows.push(format!("{} {} {}", p[0], p[1], p[2]));
+            }
+        }
+    }
+    let color_props = if colors {
+        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+    } else {
+        ""
+    };
+    let header = format!(
+        "ply\nformat ascii 1.0\nelement vertex {}\nproperty double x\nproperty double y\nproperty double z\n{color_props}end_header\n",
+        rows.len()
+    );
+    std::fs::write(path, header + &rows.join("\n") + "\n").unwrap();
+}
+
+#[test]
+fn align_recovers_a_known_transform_and_reports_open3d_style_fields() {
+    let tmp = tempfile::tempdir().unwrap();
+    // Source = target moved by the inverse of a small rotation about z and a shift.
+    let (a, t) = (0.05f64, [0.004, -0.003, 0.002]);
+    let inverse = move |p: [f64; 3]| {
+        let q = [p[0] - t[0], p[1] - t[1], p[2] - t[2]];
+        [
+            a.cos() * q[0] + a.sin() * q[1],
+            -a.sin() * q[0] + a.cos() * q[1],
+            q[2],
+        ]
+    };
+    write_patch(&tmp.path().join("target.ply"), &|p| p, true);
+    write_patch(&tmp.path().join("source.ply"), &inverse, true);
+    for method in ["plane", "colored", "auto", "global"] {
+        let out = tmp.path().join(format!("{method}.json"));
+        let o = omniscan(&[
+            "align",
+            tmp.path().join("source.ply").to_str().unwrap(),
+            tmp.path().join("target.ply").to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--method",
+            method,
+            "--max-distance",
+            "0.01",
+            "--iterations",
+            "60",
+        ]);
+        assert!(
+            o.status.success(),
+            "{method}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        let r: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+        let m: Vec<Vec<f64>> = serde_json::from_value(r["transform"].clone()).unwrap();
+        assert!(
+            (m[0][0] - a.cos()).abs() < 1e-4 && (m[1][0] - a.sin()).abs() < 1e-4,
+            "{method}: {m:?}"
+        );
+        for k in 0..3 {
+            assert!((m[k][3] - t[k]).abs() < 2e-4, "{method}: {m:?}");
+        }
+        assert!(r["fitness"].as_f64().unwrap() > 0.99);
+        assert!(r["inlier_rmse"].as_f64().unwrap() < 1e-3);
+        assert!(r["method"].as_str().unwrap().len() > 2);
+    }
+    // Colored ICP without colours, an empty cloud and a bad init file are clear errors.
+    write_patch(&tmp.path().join("grey.ply"), &inverse, false);
+    let o = omniscan(&[
+        "align",
+        tmp.path().join("grey.ply").to_str().unwrap(),
+        tmp.path().join("target.ply").to_str().unwrap(),
+        "--out",
+        tmp.path().join("x.json").to_str().unwrap(),
+        "--method",
+        "colored",
+    ]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("colours"));
+    std::fs::write(tmp.path().join("empty.xyz"), "").unwrap();
+    let o = omniscan(&[
+        "align",
+        tmp.path().join("empty.xyz").to_str().unwrap(),
+        tmp.path().join("target.ply").to_str().unwrap(),
+        "--out",
+        tmp.path().join("y.json").to_str().unwrap(),
+    ]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("empty"));
+    std::fs::write(
+        tmp.path().join("init.json"),
+        "[[1,0,0,0],[0,2,0,0],[0,0,1,0],[0,0,0,1]]",
+    )
+    .unwrap();
+    let o = omniscan(&[
+        "align",
+        tmp.path().join("source.ply").to_str().unwrap(),
+        tmp.path().join("target.ply").to_str().unwrap(),
+        "--out",
+        tmp.path().join("z.json").to_str().unwrap(),
+        "--init",
+        tmp.path().join("init.json").to_str().unwrap(),
+    ]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("rigid"));
+}
