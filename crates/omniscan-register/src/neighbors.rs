@@ -63,7 +63,7 @@ impl Neighbors {
             .execute()
             .into_iter()
             .map(|r| {
-                r.into_iter()
+                r.iter()
                     .map(|x| (x.item as usize, x.distance))
                     .collect()
             })
