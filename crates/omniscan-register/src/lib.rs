@@ -3,6 +3,7 @@
 //! colored, generalized), FPFH features, TEASER++-style and RANSAC global
 //! registration, and the paper's rule for merging the two arms' scans.
 
+pub mod capture_cloud;
 pub mod cloud;
 pub mod fpfh;
 pub mod global;

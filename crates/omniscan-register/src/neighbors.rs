@@ -62,11 +62,7 @@ impl Neighbors {
             .nearest_n::<SquaredEuclidean<f64>>(k)
             .execute()
             .into_iter()
-            .map(|r| {
-                r.iter()
-                    .map(|x| (x.item as usize, x.distance))
-                    .collect()
-            })
+            .map(|r| r.iter().map(|x| (x.item as usize, x.distance)).collect())
             .collect()
     }
 

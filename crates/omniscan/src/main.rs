@@ -279,16 +279,24 @@ fn simulate(config: SimConfig, out: &Path) -> Result<omniscan_sim::SimSummary> {
     Ok(summary)
 }
 
+fn merge_transform(merge: &serde_json::Value) -> Result<omniscan_core::Pose> {
+    let rows: [[f64; 4]; 4] = serde_json::from_value(merge["right_to_left"].clone())?;
+    Ok(omniscan_core::geometry::pose_from_rows(&rows)?)
+}
+
 fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Demo { out, object } => {
             let capture_dir = out.join("capture");
+            // A little slip at handover, as on the real robot, gives the merge step work to do.
             let config = SimConfig {
                 object,
+                slip_deg: 3.0,
+                slip_mm: 2.0,
                 ..SimConfig::default()
             };
             eprintln!(
-                "1/3 simulating a bimanual scan of {} into {}",
+                "1/4 simulating a bimanual scan of {} into {}",
                 config.object,
                 capture_dir.display()
             );
@@ -297,19 +305,33 @@ fn run(cli: Cli) -> Result<()> {
                 "    {} frames + {} empty-gripper frames in {:.1} s",
                 summary.frames, summary.empty_frames, summary.seconds
             );
-            eprintln!("2/3 validating the capture");
+            eprintln!("2/4 validating the capture");
             let capture = Capture::load(&capture_dir)?;
             let s = capture.summary();
             eprintln!(
                 "    {}x{}, {} left, {} right, {} empty frames, ground truth: {}",
                 s.width, s.height, s.left_frames, s.right_frames, s.empty_frames, s.ground_truth
             );
-            eprintln!("3/3 exporting both arms (handover-merged) for nerfstudio");
+            eprintln!(
+                "3/4 merging the scans: right depth cloud onto the left from T_lh⁻¹·T_rh, refined by ICP and colored ICP"
+            );
+            let merge = registration::merge_scans(&capture)?;
+            eprintln!(
+                "    handover estimate off by {:.2}° / {:.2} mm; after {} {:.3}° / {:.2} mm (fitness {:.3})",
+                merge["handover_error_deg"].as_f64().unwrap_or(0.0),
+                merge["handover_error_mm"].as_f64().unwrap_or(0.0),
+                merge["method"].as_str().unwrap_or(""),
+                merge["refined_error_deg"].as_f64().unwrap_or(0.0),
+                merge["refined_error_mm"].as_f64().unwrap_or(0.0),
+                merge["fitness"].as_f64().unwrap_or(0.0)
+            );
+            eprintln!("4/4 exporting both arms, merged with the refined transform, for nerfstudio");
+            let right_to_left = merge_transform(&merge)?;
             let export = export_nerfstudio(
                 &capture,
                 &out.join("nerfstudio"),
                 ExportOptions {
-                    views: ViewSet::merged_from_handover(&capture),
+                    views: ViewSet::Merged { right_to_left },
                     masks: true,
                 },
             )?;
@@ -318,6 +340,16 @@ fn run(cli: Cli) -> Result<()> {
                 serde_json::to_string_pretty(&json!({
                     "capture": capture_dir,
                     "summary": s,
+                    "merge": {
+                        "method": merge["method"],
+                        "fitness": merge["fitness"],
+                        "handover_error_deg": merge["handover_error_deg"],
+                        "handover_error_mm": merge["handover_error_mm"],
+                        "refined_error_deg": merge["refined_error_deg"],
+                        "refined_error_mm": merge["refined_error_mm"],
+                        "right_to_left": merge["right_to_left"],
+                        "candidates": merge["candidates"].as_array().map(|all| all.iter().zip(merge["candidate_errors_deg"].as_array().cloned().unwrap_or_default()).map(|(c, e)| json!({"method": c["method"], "fitness": c["registration"]["fitness"], "inlier_rmse": c["registration"]["inlier_rmse"], "error_deg": e})).collect::<Vec<_>>()),
+                    },
                     "nerfstudio": export.transforms,
                     "seconds": summary.seconds,
                 }))?

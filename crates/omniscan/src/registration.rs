@@ -511,3 +511,48 @@ fn print_bench(report: &Value) {
         report["global"]["success_rate"].as_f64().unwrap_or(0.0) * 100.0
     );
 }
+
+/// The paper's merge step on a capture's depth: object clouds of both arms
+/// in their grippers' frames, the right one aligned onto the left from the
+/// handover estimate by the better of ICP and colored ICP. With ground truth,
+/// reports the error before and after.
+pub fn merge_scans(capture: &omniscan_core::Capture) -> Result<Value> {
+    use omniscan_core::Arm;
+    use omniscan_register::capture_cloud::object_cloud;
+    let voxel = 0.001;
+    let left = voxel_downsample(&object_cloud(capture, Arm::Left, 4, 2)?, voxel);
+    let right = voxel_downsample(&object_cloud(capture, Arm::Right, 4, 2)?, voxel);
+    let h = &capture.file.handover;
+    let init = omniscan_core::poses::handover_right_to_left(
+        &h.left_gripper_to_world.0,
+        &h.right_gripper_to_world.0,
+    );
+    let (best, all) = refine_from_initial(
+        &right,
+        &left,
+        &init,
+        0.006,
+        &Criteria {
+            max_iteration: 50,
+            ..Criteria::default()
+        },
+    )?;
+    let mut report = json!({
+        "right_to_left": pose_to_rows(&best.registration.transformation),
+        "method": best.method,
+        "fitness": best.registration.fitness,
+        "inlier_rmse_m": best.registration.inlier_rmse,
+        "points": [right.len(), left.len()],
+        "candidates": all,
+        "candidate_errors_deg": all.iter().map(|c| capture.file.gt.as_ref().map(|g| pose_difference(&c.registration.transformation, &g.right_to_left.0).0.to_degrees())).collect::<Vec<_>>(),
+    });
+    if let Some(gt) = &capture.file.gt {
+        let (a0, t0) = pose_difference(&init, &gt.right_to_left.0);
+        let (a1, t1) = pose_difference(&best.registration.transformation, &gt.right_to_left.0);
+        report["handover_error_deg"] = json!(a0.to_degrees());
+        report["handover_error_mm"] = json!(t0 * 1e3);
+        report["refined_error_deg"] = json!(a1.to_degrees());
+        report["refined_error_mm"] = json!(t1 * 1e3);
+    }
+    Ok(report)
+}
