@@ -263,24 +263,7 @@ impl<'a> Target<'a> {
                 moved: 0.0,
             };
         }
-        let r = self.neighbors.knn(q, 2);
-        match (r.first(), r.get(1)) {
-            (Some(&(j, e1)), second) => {
-                let e2 = second.map_or(f64::INFINITY, |s| s.1.sqrt());
-                Hint {
-                    target: j as u32,
-                    nearest: e1.sqrt(),
-                    gap: e2 - e1.sqrt(),
-                    moved: 0.0,
-                }
-            }
-            _ => Hint {
-                target: 0,
-                nearest: f64::INFINITY,
-                gap: 0.0,
-                moved: 0.0,
-            },
-        }
+        Hint::from_tree(self, q)
     }
 }
 
@@ -301,6 +284,30 @@ struct Hint {
     moved: f64,
 }
 
+impl Hint {
+    /// A fresh certificate from the two nearest target points (k-d tree).
+    fn from_tree(target: &Target, q: &Point3<f64>) -> Hint {
+        let r = target.neighbors.knn(q, 2);
+        match (r.first(), r.get(1)) {
+            (Some(&(j, e1)), second) => {
+                let e2 = second.map_or(f64::INFINITY, |s| s.1.sqrt());
+                Hint {
+                    target: j as u32,
+                    nearest: e1.sqrt(),
+                    gap: e2 - e1.sqrt(),
+                    moved: 0.0,
+                }
+            }
+            _ => Hint {
+                target: 0,
+                nearest: f64::INFINITY,
+                gap: 0.0,
+                moved: 0.0,
+            },
+        }
+    }
+}
+
 /// Correspondences (source index, target index, distance²) of `points` in
 /// `target`. `hints` carries each point's state between calls and `moved_by`
 /// how far each point moved since the last call (empty on the first).
@@ -315,26 +322,7 @@ fn correspondences(
         // First call: k-d tree queries seed the hints.
         *hints = points
             .par_iter()
-            .map(|p| {
-                let r = target.neighbors.knn(p, 2);
-                match (r.first(), r.get(1)) {
-                    (Some(&(j, e1)), second) => {
-                        let e2 = second.map_or(f64::INFINITY, |s| s.1.sqrt());
-                        Hint {
-                            target: j as u32,
-                            nearest: e1.sqrt(),
-                            gap: e2 - e1.sqrt(),
-                            moved: 0.0,
-                        }
-                    }
-                    _ => Hint {
-                        target: 0,
-                        nearest: f64::INFINITY,
-                        gap: 0.0,
-                        moved: 0.0,
-                    },
-                }
-            })
+            .map(|p| Hint::from_tree(target, p))
             .collect();
         return hints
             .iter()

@@ -61,32 +61,7 @@ enum Command {
         no_masks: bool,
     },
     /// Register SOURCE onto TARGET (point clouds or splat models) and write the transform.
-    Align {
-        /// Point cloud or splat model to move (.ply, .pcd, .xyz).
-        source: PathBuf,
-        /// Point cloud or splat model to align to.
-        target: PathBuf,
-        /// Output JSON: transform (4x4 row-major, maps SOURCE into TARGET), fitness, inlier_rmse, method.
-        #[arg(long)]
-        out: PathBuf,
-        /// Initial transform (JSON: a 4x4 matrix or {"transform": ...}); identity if absent.
-        #[arg(long)]
-        init: Option<PathBuf>,
-        #[arg(long, value_enum, default_value = "auto")]
-        method: registration::Method,
-        /// Correspondence distance, in the clouds' units (metres for captures); default: target extent / 50.
-        #[arg(long)]
-        max_distance: Option<f64>,
-        /// Voxel size for global registration, in the clouds' units; default: target extent / 40.
-        #[arg(long)]
-        voxel: Option<f64>,
-        /// Maximum ICP iterations.
-        #[arg(long, default_value_t = 30)]
-        iterations: usize,
-        /// Also print the result as JSON.
-        #[arg(long)]
-        json: bool,
-    },
+    Align(registration::AlignArgs),
     /// Print the gripper poses of the scan trajectory a robot would execute.
     Plan {
         #[command(flatten)]
@@ -104,22 +79,7 @@ enum Command {
 #[derive(Subcommand)]
 enum BenchCommand {
     /// Registration speed and accuracy: local ICP on frag_115 halves (against Open3D when given), global registration on random rotations.
-    Registration {
-        /// The colored RGB-D fragment (shared/data/registration/frag_115.ply).
-        #[arg(long)]
-        frag: PathBuf,
-        /// A directory of splat models (shared/data/real-splats) for the global test.
-        #[arg(long)]
-        splats: Option<PathBuf>,
-        /// A Python interpreter with open3d 0.20 installed, for the baseline.
-        #[arg(long)]
-        open3d_python: Option<PathBuf>,
-        /// Random rotations per dataset for the global test.
-        #[arg(long, default_value_t = 20)]
-        trials: usize,
-        #[arg(long)]
-        json: bool,
-    },
+    Registration(registration::BenchArgs),
     /// Time a full simulated capture: both arms' trajectories plus the empty pass.
     Sim {
         #[arg(long, default_value = "builtin:flashlight")]
@@ -415,47 +375,10 @@ fn run(cli: Cli) -> Result<()> {
                 summary.frames
             );
         }
-        Command::Align {
-            source,
-            target,
-            out,
-            init,
-            method,
-            max_distance,
-            voxel,
-            iterations,
-            json,
-        } => {
-            registration::align(registration::AlignArgs {
-                source,
-                target,
-                out,
-                init,
-                method,
-                max_distance,
-                voxel,
-                iterations,
-                json,
-            })?;
-        }
+        Command::Align(args) => registration::align(args)?,
         Command::Bench {
-            which:
-                BenchCommand::Registration {
-                    frag,
-                    splats,
-                    open3d_python,
-                    trials,
-                    json,
-                },
-        } => {
-            registration::bench(registration::BenchArgs {
-                frag,
-                splats,
-                open3d_python,
-                trials,
-                json,
-            })?;
-        }
+            which: BenchCommand::Registration(args),
+        } => registration::bench(args)?,
         Command::Plan { plan, json } => {
             let config = plan.config();
             if let Err(e) = config.validate() {

@@ -54,15 +54,31 @@ pub fn read_transform(path: &Path) -> Result<Pose> {
     pose_from_rows(&rows).with_context(|| format!("{}: transform", path.display()))
 }
 
+#[derive(clap::Args)]
 pub struct AlignArgs {
+    /// Point cloud or splat model to move (.ply, .pcd, .xyz).
     pub source: PathBuf,
+    /// Point cloud or splat model to align to.
     pub target: PathBuf,
+    /// Output JSON: transform (4x4 row-major, maps SOURCE into TARGET), fitness, inlier_rmse, method.
+    #[arg(long)]
     pub out: PathBuf,
+    /// Initial transform (JSON: a 4x4 matrix or {"transform": ...}); identity if absent.
+    #[arg(long)]
     pub init: Option<PathBuf>,
+    #[arg(long, value_enum, default_value = "auto")]
     pub method: Method,
+    /// Correspondence distance, in the clouds' units (metres for captures); default: target extent / 50.
+    #[arg(long)]
     pub max_distance: Option<f64>,
+    /// Voxel size for global registration, in the clouds' units; default: chosen to leave about 1200 points.
+    #[arg(long)]
     pub voxel: Option<f64>,
+    /// Maximum ICP iterations.
+    #[arg(long, default_value_t = 30)]
     pub iterations: usize,
+    /// Also print the result as JSON.
+    #[arg(long)]
     pub json: bool,
 }
 
@@ -169,11 +185,21 @@ pub fn align(args: AlignArgs) -> Result<()> {
     Ok(())
 }
 
+#[derive(clap::Args)]
 pub struct BenchArgs {
+    /// The colored RGB-D fragment (shared/data/registration/frag_115.ply).
+    #[arg(long)]
     pub frag: PathBuf,
+    /// A directory of splat models (shared/data/real-splats) for the global test.
+    #[arg(long)]
     pub splats: Option<PathBuf>,
+    /// A Python interpreter with open3d 0.20 installed, for the baseline.
+    #[arg(long)]
     pub open3d_python: Option<PathBuf>,
+    /// Random rotations per dataset for the global test.
+    #[arg(long, default_value_t = 20)]
     pub trials: usize,
+    #[arg(long)]
     pub json: bool,
 }
 
