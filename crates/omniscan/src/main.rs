@@ -2,6 +2,7 @@
 //! captures, print the scan plan, and benchmark.
 
 mod registration;
+mod render;
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -60,6 +61,8 @@ enum Command {
         #[arg(long)]
         no_masks: bool,
     },
+    /// Render a splat model from orbiting cameras or a capture's cameras.
+    Render(render::RenderArgs),
     /// Register SOURCE onto TARGET (point clouds or splat models) and write the transform.
     Align(registration::AlignArgs),
     /// Print the gripper poses of the scan trajectory a robot would execute.
@@ -376,6 +379,7 @@ fn run(cli: Cli) -> Result<()> {
             );
         }
         Command::Align(args) => registration::align(args)?,
+        Command::Render(args) => render::run(args)?,
         Command::Bench {
             which: BenchCommand::Registration(args),
         } => registration::bench(args)?,

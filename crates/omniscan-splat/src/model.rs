@@ -1,0 +1,102 @@
+//! A 3D Gaussian Splat model as stored: means, log-scales, rotation
+//! quaternions (w, x, y, z, not necessarily unit), opacity logits and
+//! spherical-harmonics coefficients up to degree 3, all pre-activation, as in
+//! the standard 3DGS PLY.
+
+use crate::raster::{Colors, Gaussians};
+use crate::sh::coefficients;
+use crate::{Real, SplatError};
+
+/// A splat model. `sh` holds `(sh_degree+1)²` RGB triples per splat, basis
+/// index major (gsplat's `[N, K, 3]`).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Splats {
+    pub means: Vec<[f32; 3]>,
+    pub log_scales: Vec<[f32; 3]>,
+    pub quats: Vec<[f32; 4]>,
+    pub opacity_logits: Vec<f32>,
+    pub sh_degree: usize,
+    pub sh: Vec<[f32; 3]>,
+    /// Trained with the antialiased (Mip-Splatting) opacity compensation.
+    pub antialiased: bool,
+}
+
+impl Splats {
+    pub fn len(&self) -> usize {
+        self.means.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.means.is_empty()
+    }
+    /// Coefficients per channel.
+    pub fn sh_coefficients(&self) -> usize {
+        coefficients(self.sh_degree)
+    }
+
+    /// Checks array sizes and that every value is finite.
+    pub fn validate(&self) -> Result<(), SplatError> {
+        let n = self.len();
+        let k = self.sh_coefficients();
+        if self.sh_degree > 3 {
+            return Err(SplatError::Invalid(format!(
+                "SH degree {} is above 3",
+                self.sh_degree
+            )));
+        }
+        if self.log_scales.len() != n
+            || self.quats.len() != n
+            || self.opacity_logits.len() != n
+            || self.sh.len() != n * k
+        {
+            return Err(SplatError::Invalid(
+                "splat arrays have different lengths".into(),
+            ));
+        }
+        let bad =
+            |i: usize| SplatError::Invalid(format!("splat {i} has a NaN or infinite parameter"));
+        for i in 0..n {
+            let finite = self.means[i]
+                .iter()
+                .chain(&self.log_scales[i])
+                .chain(&self.quats[i])
+                .all(|v| v.is_finite())
+                && self.opacity_logits[i].is_finite()
+                && self.sh[i * k..(i + 1) * k]
+                    .iter()
+                    .flatten()
+                    .all(|v| v.is_finite());
+            if !finite {
+                return Err(bad(i));
+            }
+            if self.quats[i].iter().all(|&v| v == 0.0) {
+                return Err(SplatError::Invalid(format!(
+                    "splat {i} has a zero rotation quaternion"
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// Activated parameters in float type `F` for the rasterizer.
+    pub fn gaussians<F: Real>(&self) -> Gaussians<F> {
+        let c = |v: f32| F::c(v as f64);
+        Gaussians {
+            means: self.means.iter().map(|m| m.map(c)).collect(),
+            scales: self
+                .log_scales
+                .iter()
+                .map(|s| s.map(|v| c(v).exp()))
+                .collect(),
+            quats: self.quats.iter().map(|q| q.map(c)).collect(),
+            opacities: self
+                .opacity_logits
+                .iter()
+                .map(|&o| F::one() / (F::one() + (-c(o)).exp()))
+                .collect(),
+            colors: Colors::Sh {
+                degree: self.sh_degree,
+                coeffs: self.sh.iter().map(|v| v.map(c)).collect(),
+            },
+        }
+    }
+}

@@ -1,0 +1,74 @@
+//! Turntable cameras around a splat model: evenly spaced azimuths at a
+//! slight elevation, looking at the model's robust centre (the median of
+//! its opaque splats, so floaters do not pull the view away), far enough
+//! that the central 90% of the model fills about two thirds of the view.
+
+use nalgebra::{Point3, Vector3};
+
+use crate::Splats;
+use crate::raster::Camera;
+use omniscan_core::geometry::look_at;
+
+/// `count` cameras of `width` x `height` pixels orbiting the model.
+pub fn orbit_cameras(model: &Splats, count: usize, width: u32, height: u32) -> Vec<Camera<f32>> {
+    let sigmoid = |x: f32| 1.0 / (1.0 + (-x).exp());
+    let mut pts: Vec<[f32; 3]> = model
+        .means
+        .iter()
+        .zip(&model.opacity_logits)
+        .filter(|(_, o)| sigmoid(**o) > 0.1)
+        .map(|(m, _)| *m)
+        .collect();
+    if pts.is_empty() {
+        pts = model.means.clone();
+    }
+    let mut axes: Vec<Vec<f32>> = (0..3).map(|k| pts.iter().map(|p| p[k]).collect()).collect();
+    let mut centre = [0.0f64; 3];
+    let mut radius = 0.0f64;
+    for (k, a) in axes.iter_mut().enumerate() {
+        a.sort_by(f32::total_cmp);
+        let (lo, mid, hi) = (
+            a[a.len() / 20],
+            a[a.len() / 2],
+            a[a.len() - 1 - a.len() / 20],
+        );
+        centre[k] = mid as f64;
+        radius += ((hi - lo) as f64 * 0.5).powi(2);
+    }
+    let radius = radius.sqrt().max(1e-6);
+    let focal = 0.5 * width as f64 / (25f64.to_radians()).tan();
+    let distance = radius / (25f64.to_radians()).tan() * 1.5;
+    let target = Point3::from(centre);
+    (0..count.max(1))
+        .map(|i| {
+            let azimuth = std::f64::consts::TAU * i as f64 / count.max(1) as f64;
+            let elevation = 20f64.to_radians();
+            let eye = target
+                + distance
+                    * Vector3::new(
+                        elevation.cos() * azimuth.cos(),
+                        elevation.cos() * azimuth.sin(),
+                        elevation.sin(),
+                    );
+            let camera_to_world = look_at(&eye, &target, &Vector3::z());
+            let v = camera_to_world.inverse().to_homogeneous();
+            let mut viewmat = [[0.0f32; 4]; 4];
+            for (r, row) in viewmat.iter_mut().enumerate() {
+                for (c, x) in row.iter_mut().enumerate() {
+                    *x = v[(r, c)] as f32;
+                }
+            }
+            Camera {
+                viewmat,
+                fx: focal as f32,
+                fy: focal as f32,
+                cx: width as f32 * 0.5,
+                cy: height as f32 * 0.5,
+                width,
+                height,
+                near: (0.01 * distance) as f32,
+                far: (100.0 * distance) as f32,
+            }
+        })
+        .collect()
+}

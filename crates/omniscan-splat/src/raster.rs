@@ -1,0 +1,490 @@
+//! CPU reference rasterizer, forward pass, in gsplat's conventions (see the
+//! crate docs): project every Gaussian (EWA with the Jacobian's clamp just
+//! outside the view, +0.3 px low-pass, optional antialiasing compensation),
+//! bin by 16x16 tiles, sort each tile by depth, composite front to back.
+//! Generic over f32/f64; tiles run in parallel and each pixel's sum is taken
+//! in a fixed order, so results are deterministic.
+
+use rayon::prelude::*;
+
+use crate::Real;
+use crate::sh;
+
+/// Activated Gaussian parameters.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Gaussians<F> {
+    pub means: Vec<[F; 3]>,
+    /// exp(log-scale).
+    pub scales: Vec<[F; 3]>,
+    /// (w, x, y, z); normalised inside the projection.
+    pub quats: Vec<[F; 4]>,
+    /// sigmoid(logit).
+    pub opacities: Vec<F>,
+    pub colors: Colors<F>,
+}
+
+/// Per-Gaussian colour: plain RGB, or SH coefficients evaluated towards the camera.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Colors<F> {
+    Rgb(Vec<[F; 3]>),
+    /// `(degree+1)²` RGB triples per Gaussian, basis index major.
+    Sh {
+        degree: usize,
+        coeffs: Vec<[F; 3]>,
+    },
+}
+
+/// A pinhole camera: world-to-camera matrix (OpenCV axes) and intrinsics.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Camera<F> {
+    pub viewmat: [[F; 4]; 4],
+    pub fx: F,
+    pub fy: F,
+    pub cx: F,
+    pub cy: F,
+    pub width: u32,
+    pub height: u32,
+    pub near: F,
+    pub far: F,
+}
+
+/// How the 2D footprint is low-pass filtered.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Mode {
+    /// Add 0.3 px² to the 2D covariance (original 3DGS).
+    Classic,
+    /// Also scale opacity by the determinant ratio (Mip-Splatting's 2D filter).
+    Antialiased,
+}
+
+/// Rendering settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Settings<F> {
+    pub eps2d: F,
+    pub mode: Mode,
+    pub background: [F; 3],
+}
+
+impl<F: Real> Default for Settings<F> {
+    fn default() -> Self {
+        Settings {
+            eps2d: F::c(0.3),
+            mode: Mode::Classic,
+            background: [F::zero(); 3],
+        }
+    }
+}
+
+pub const TILE: u32 = 16;
+const ALPHA_MAX: f64 = 0.999;
+const ALPHA_MIN: f64 = 1.0 / 255.0;
+const T_STOP: f64 = 1e-4;
+const RADIUS_SIGMA: f64 = 3.33;
+
+/// Projection of every Gaussian; invisible ones have zero radii.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Projected<F> {
+    pub means2d: Vec<[F; 2]>,
+    pub depths: Vec<F>,
+    /// Upper triangle of the inverse 2D covariance: (a, b, c).
+    pub conics: Vec<[F; 3]>,
+    pub radii: Vec<[i32; 2]>,
+    pub compensations: Vec<F>,
+    /// Opacity used for compositing (compensated in antialiased mode).
+    pub opacities: Vec<F>,
+    /// View-dependent colour, clamped at 0 for SH.
+    pub colors: Vec<[F; 3]>,
+}
+
+impl<F> Projected<F> {
+    pub fn visible(&self, i: usize) -> bool {
+        self.radii[i][0] > 0 && self.radii[i][1] > 0
+    }
+}
+
+/// Rotation matrix of the normalised quaternion (w, x, y, z).
+pub fn quat_to_rotmat<F: Real>(q: [F; 4]) -> [[F; 3]; 3] {
+    let n = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
+    let [w, x, y, z] = q.map(|v| v / n);
+    let (one, two) = (F::one(), F::c(2.0));
+    [
+        [
+            one - two * (y * y + z * z),
+            two * (x * y - w * z),
+            two * (x * z + w * y),
+        ],
+        [
+            two * (x * y + w * z),
+            one - two * (x * x + z * z),
+            two * (y * z - w * x),
+        ],
+        [
+            two * (x * z - w * y),
+            two * (y * z + w * x),
+            one - two * (x * x + y * y),
+        ],
+    ]
+}
+
+fn matmul3<F: Real>(a: &[[F; 3]; 3], b: &[[F; 3]; 3]) -> [[F; 3]; 3] {
+    let mut out = [[F::zero(); 3]; 3];
+    for (i, row) in out.iter_mut().enumerate() {
+        for (j, v) in row.iter_mut().enumerate() {
+            *v = a[i][0] * b[0][j] + a[i][1] * b[1][j] + a[i][2] * b[2][j];
+        }
+    }
+    out
+}
+
+fn transpose3<F: Real>(a: &[[F; 3]; 3]) -> [[F; 3]; 3] {
+    let mut out = [[F::zero(); 3]; 3];
+    for i in 0..3 {
+        for j in 0..3 {
+            out[i][j] = a[j][i];
+        }
+    }
+    out
+}
+
+/// World-space covariance R·S·Sᵀ·Rᵀ.
+pub fn covariance<F: Real>(quat: [F; 4], scale: [F; 3]) -> [[F; 3]; 3] {
+    let r = quat_to_rotmat(quat);
+    let mut m = r;
+    for row in &mut m {
+        for (j, v) in row.iter_mut().enumerate() {
+            *v = *v * scale[j];
+        }
+    }
+    matmul3(&m, &transpose3(&m))
+}
+
+/// Projects every Gaussian through `camera`.
+pub fn project<F: Real>(
+    g: &Gaussians<F>,
+    camera: &Camera<F>,
+    settings: &Settings<F>,
+) -> Projected<F> {
+    let n = g.means.len();
+    let v = &camera.viewmat;
+    let rot = [
+        [v[0][0], v[0][1], v[0][2]],
+        [v[1][0], v[1][1], v[1][2]],
+        [v[2][0], v[2][1], v[2][2]],
+    ];
+    let trans = [v[0][3], v[1][3], v[2][3]];
+    // Camera centre in world coordinates, −Rᵀt, for SH view directions.
+    let campos =
+        [0, 1, 2].map(|j| -(rot[0][j] * trans[0] + rot[1][j] * trans[1] + rot[2][j] * trans[2]));
+    let (w, h) = (F::c(camera.width as f64), F::c(camera.height as f64));
+    let tan_x = F::c(0.5) * w / camera.fx;
+    let tan_y = F::c(0.5) * h / camera.fy;
+    let lim_x_pos = (w - camera.cx) / camera.fx + F::c(0.3) * tan_x;
+    let lim_x_neg = camera.cx / camera.fx + F::c(0.3) * tan_x;
+    let lim_y_pos = (h - camera.cy) / camera.fy + F::c(0.3) * tan_y;
+    let lim_y_neg = camera.cy / camera.fy + F::c(0.3) * tan_y;
+    let per: Vec<_> = (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let m = g.means[i];
+            let pc = [0, 1, 2]
+                .map(|r| rot[r][0] * m[0] + rot[r][1] * m[1] + rot[r][2] * m[2] + trans[r]);
+            let (x, y, z) = (pc[0], pc[1], pc[2]);
+            let cov_w = covariance(g.quats[i], g.scales[i]);
+            let cov_c = matmul3(&matmul3(&rot, &cov_w), &transpose3(&rot));
+            let tx = z * (x / z).max(-lim_x_neg).min(lim_x_pos);
+            let ty = z * (y / z).max(-lim_y_neg).min(lim_y_pos);
+            let j = [
+                [camera.fx / z, F::zero(), -camera.fx * tx / (z * z)],
+                [F::zero(), camera.fy / z, -camera.fy * ty / (z * z)],
+            ];
+            // cov2d = J Σ Jᵀ
+            let mut js = [[F::zero(); 3]; 2];
+            for r in 0..2 {
+                for c in 0..3 {
+                    js[r][c] =
+                        j[r][0] * cov_c[0][c] + j[r][1] * cov_c[1][c] + j[r][2] * cov_c[2][c];
+                }
+            }
+            let mut cov2 = [[F::zero(); 2]; 2];
+            for r in 0..2 {
+                for c in 0..2 {
+                    cov2[r][c] = js[r][0] * j[c][0] + js[r][1] * j[c][1] + js[r][2] * j[c][2];
+                }
+            }
+            let det_raw = cov2[0][0] * cov2[1][1] - cov2[0][1] * cov2[1][0];
+            let (a, b, c) = (
+                cov2[0][0] + settings.eps2d,
+                (cov2[0][1] + cov2[1][0]) * F::c(0.5),
+                cov2[1][1] + settings.eps2d,
+            );
+            let det = (a * c - b * b).max(F::c(1e-10));
+            let compensation = (det_raw / det).max(F::zero()).sqrt();
+            let conic = [c / det, -b / det, a / det];
+            let mean2d = [camera.fx * x / z + camera.cx, camera.fy * y / z + camera.cy];
+            let rx = (F::c(RADIUS_SIGMA) * a.sqrt()).ceil();
+            let ry = (F::c(RADIUS_SIGMA) * c.sqrt()).ceil();
+            let in_depth = z > camera.near && z < camera.far;
+            let on_image = mean2d[0] + rx > F::zero()
+                && mean2d[0] - rx < w
+                && mean2d[1] + ry > F::zero()
+                && mean2d[1] - ry < h;
+            let visible = in_depth && on_image && det.is_finite();
+            let radii = if visible {
+                [rx.to_i32().unwrap_or(0), ry.to_i32().unwrap_or(0)]
+            } else {
+                [0, 0]
+            };
+            let opacity = match settings.mode {
+                Mode::Classic => g.opacities[i],
+                Mode::Antialiased => g.opacities[i] * compensation,
+            };
+            let color = match &g.colors {
+                Colors::Rgb(c) => c[i],
+                Colors::Sh { degree, coeffs } => {
+                    let k = sh::coefficients(*degree);
+                    let d = [m[0] - campos[0], m[1] - campos[1], m[2] - campos[2]];
+                    let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                    let dir = d.map(|v| v / len);
+                    let raw = sh::evaluate(*degree, dir, &coeffs[i * k..(i + 1) * k]);
+                    raw.map(|v| (v + F::c(0.5)).max(F::zero()))
+                }
+            };
+            (mean2d, z, conic, radii, compensation, opacity, color)
+        })
+        .collect();
+    let mut p = Projected {
+        means2d: Vec::with_capacity(n),
+        depths: Vec::with_capacity(n),
+        conics: Vec::with_capacity(n),
+        radii: Vec::with_capacity(n),
+        compensations: Vec::with_capacity(n),
+        opacities: Vec::with_capacity(n),
+        colors: Vec::with_capacity(n),
+    };
+    for (mean2d, z, conic, radii, comp, opacity, color) in per {
+        p.means2d.push(mean2d);
+        p.depths.push(z);
+        p.conics.push(conic);
+        p.radii.push(radii);
+        p.compensations.push(comp);
+        p.opacities.push(opacity);
+        p.colors.push(color);
+    }
+    p
+}
+
+/// Gaussians touching each tile, front to back (ties by index).
+pub fn tile_lists<F: Real>(p: &Projected<F>, width: u32, height: u32) -> Vec<Vec<u32>> {
+    let (tx, ty) = (width.div_ceil(TILE), height.div_ceil(TILE));
+    let mut tiles: Vec<Vec<u32>> = vec![Vec::new(); (tx * ty) as usize];
+    let tile = F::c(TILE as f64);
+    for i in 0..p.means2d.len() {
+        if !p.visible(i) {
+            continue;
+        }
+        let [mx, my] = p.means2d[i];
+        let [rx, ry] = p.radii[i].map(|r| F::c(r as f64));
+        let x0 = ((mx - rx) / tile)
+            .floor()
+            .to_i64()
+            .unwrap_or(0)
+            .clamp(0, tx as i64);
+        let x1 = ((mx + rx) / tile)
+            .ceil()
+            .to_i64()
+            .unwrap_or(0)
+            .clamp(0, tx as i64);
+        let y0 = ((my - ry) / tile)
+            .floor()
+            .to_i64()
+            .unwrap_or(0)
+            .clamp(0, ty as i64);
+        let y1 = ((my + ry) / tile)
+            .ceil()
+            .to_i64()
+            .unwrap_or(0)
+            .clamp(0, ty as i64);
+        for y in y0..y1 {
+            for x in x0..x1 {
+                tiles[(y * tx as i64 + x) as usize].push(i as u32);
+            }
+        }
+    }
+    for list in &mut tiles {
+        list.sort_by(|&a, &b| {
+            p.depths[a as usize]
+                .partial_cmp(&p.depths[b as usize])
+                .unwrap_or(std::cmp::Ordering::Equal)
+                .then(a.cmp(&b))
+        });
+    }
+    tiles
+}
+
+/// A rendered image: colour with background, accumulated alpha, and the
+/// alpha-weighted depth sum (divide by alpha for expected depth).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Render<F> {
+    pub width: u32,
+    pub height: u32,
+    pub rgb: Vec<[F; 3]>,
+    pub alpha: Vec<F>,
+    pub depth: Vec<F>,
+    /// How many Gaussians were composited at each pixel.
+    pub contributors: Vec<u32>,
+}
+
+/// One pixel's result: index, colour, alpha, depth sum, contributors.
+type PixelResult<F> = (usize, [F; 3], F, F, u32);
+
+/// Composites the projected Gaussians into an image.
+pub fn rasterize<F: Real>(
+    p: &Projected<F>,
+    width: u32,
+    height: u32,
+    background: [F; 3],
+) -> Render<F> {
+    let tiles = tile_lists(p, width, height);
+    let tx = width.div_ceil(TILE);
+    let n = (width * height) as usize;
+    let tile_out: Vec<(u32, Vec<PixelResult<F>>)> = (0..tiles.len() as u32)
+        .into_par_iter()
+        .map(|t| {
+            let (ox, oy) = ((t % tx) * TILE, (t / tx) * TILE);
+            let list = &tiles[t as usize];
+            let mut out = Vec::with_capacity((TILE * TILE) as usize);
+            for py in oy..(oy + TILE).min(height) {
+                for px in ox..(ox + TILE).min(width) {
+                    let (fx, fy) = (F::c(px as f64 + 0.5), F::c(py as f64 + 0.5));
+                    let mut t_acc = F::one();
+                    let mut c = [F::zero(); 3];
+                    let mut d = F::zero();
+                    let mut count = 0;
+                    for &g in list {
+                        let g = g as usize;
+                        let [a, b, cc] = p.conics[g];
+                        let dx = p.means2d[g][0] - fx;
+                        let dy = p.means2d[g][1] - fy;
+                        let sigma = F::c(0.5) * (a * dx * dx + cc * dy * dy) + b * dx * dy;
+                        if sigma < F::zero() {
+                            continue;
+                        }
+                        let alpha = (p.opacities[g] * (-sigma).exp()).min(F::c(ALPHA_MAX));
+                        if alpha < F::c(ALPHA_MIN) {
+                            continue;
+                        }
+                        let next = t_acc * (F::one() - alpha);
+                        if next <= F::c(T_STOP) {
+                            break;
+                        }
+                        let w = alpha * t_acc;
+                        for (acc, col) in c.iter_mut().zip(p.colors[g]) {
+                            *acc = *acc + col * w;
+                        }
+                        d = d + p.depths[g] * w;
+                        t_acc = next;
+                        count += 1;
+                    }
+                    let rgb = [0, 1, 2].map(|ch| c[ch] + t_acc * background[ch]);
+                    out.push(((py * width + px) as usize, rgb, F::one() - t_acc, d, count));
+                }
+            }
+            (t, out)
+        })
+        .collect();
+    let mut r = Render {
+        width,
+        height,
+        rgb: vec![[F::zero(); 3]; n],
+        alpha: vec![F::zero(); n],
+        depth: vec![F::zero(); n],
+        contributors: vec![0; n],
+    };
+    for (_, pixels) in tile_out {
+        for (i, rgb, a, d, count) in pixels {
+            r.rgb[i] = rgb;
+            r.alpha[i] = a;
+            r.depth[i] = d;
+            r.contributors[i] = count;
+        }
+    }
+    r
+}
+
+/// Projects and rasterizes in one call.
+pub fn render<F: Real>(
+    g: &Gaussians<F>,
+    camera: &Camera<F>,
+    settings: &Settings<F>,
+) -> (Projected<F>, Render<F>) {
+    let p = project(g, camera, settings);
+    let r = rasterize(&p, camera.width, camera.height, settings.background);
+    (p, r)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn camera() -> Camera<f64> {
+        let id = [
+            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+            [0.0, 0.0, 0.0, 1.0],
+        ];
+        Camera {
+            viewmat: id,
+            fx: 50.0,
+            fy: 50.0,
+            cx: 16.0,
+            cy: 16.0,
+            width: 32,
+            height: 32,
+            near: 0.01,
+            far: 100.0,
+        }
+    }
+
+    #[test]
+    fn an_isotropic_gaussian_matches_its_closed_form() {
+        // One Gaussian straight ahead: σ² = (50·s/z)² + 0.3 pixels², opacity 0.5.
+        let g = Gaussians {
+            means: vec![[0.0, 0.0, 2.0]],
+            scales: vec![[0.1; 3]],
+            quats: vec![[1.0, 0.0, 0.0, 0.0]],
+            opacities: vec![0.5],
+            colors: Colors::Rgb(vec![[1.0, 0.5, 0.25]]),
+        };
+        let (p, r) = render(&g, &camera(), &Settings::default());
+        let var = (50.0 * 0.1 / 2.0f64).powi(2) + 0.3;
+        assert!((p.conics[0][0] - 1.0 / var).abs() < 1e-12 && p.conics[0][1].abs() < 1e-12);
+        for (px, py) in [(16, 16), (18, 15), (25, 20)] {
+            let (dx, dy) = (16.0 - (px as f64 + 0.5), 16.0 - (py as f64 + 0.5));
+            let alpha = 0.5 * (-0.5 * (dx * dx + dy * dy) / var).exp();
+            let i = py * 32 + px;
+            if alpha >= 1.0 / 255.0 {
+                assert!((r.alpha[i] - alpha).abs() < 1e-12, "{px},{py}");
+                assert!((r.rgb[i][1] - 0.5 * alpha).abs() < 1e-12);
+                assert!((r.depth[i] - 2.0 * alpha).abs() < 1e-12);
+            } else {
+                assert_eq!(r.alpha[i], 0.0);
+            }
+        }
+    }
+
+    #[test]
+    fn behind_the_camera_is_invisible_and_front_occludes_back() {
+        let g = Gaussians {
+            means: vec![[0.0, 0.0, -1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 3.0]],
+            scales: vec![[0.2; 3]; 3],
+            quats: vec![[1.0, 0.0, 0.0, 0.0]; 3],
+            opacities: vec![0.99; 3],
+            colors: Colors::Rgb(vec![[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
+        };
+        let (p, r) = render(&g, &camera(), &Settings::default());
+        assert!(!p.visible(0) && p.visible(1) && p.visible(2));
+        let centre = 16 * 32 + 16;
+        assert!(r.rgb[centre][0] > 0.9 && r.rgb[centre][1] < 0.05);
+    }
+}

@@ -1,0 +1,123 @@
+//! `omniscan render`: images of a splat model from orbiting cameras or from a
+//! capture's cameras, with the CPU reference rasterizer.
+
+use std::path::PathBuf;
+
+use anyhow::{Result, bail};
+use rayon::prelude::*;
+
+use omniscan_core::capture::{Arm, Capture};
+use omniscan_core::image_io::{RgbImage, write_rgb};
+use omniscan_core::poses::{ViewSet, camera_views};
+use omniscan_splat::ply::read_splats;
+use omniscan_splat::raster::{Camera, Mode, Settings, render};
+
+#[derive(clap::Args)]
+pub struct RenderArgs {
+    /// The splat model (3DGS PLY).
+    pub model: PathBuf,
+    /// Output directory for the PNG images.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Number of turntable views (ignored with --capture).
+    #[arg(long, default_value_t = 8)]
+    pub orbit: usize,
+    /// Render the cameras of this capture instead (in the model's frame: the holding gripper's).
+    #[arg(long)]
+    pub capture: Option<PathBuf>,
+    /// Which arm's cameras of the capture.
+    #[arg(long, default_value = "left")]
+    pub arm: Arm,
+    /// Image width for turntable views, pixels.
+    #[arg(long, default_value_t = 640)]
+    pub width: u32,
+    /// Image height for turntable views, pixels.
+    #[arg(long, default_value_t = 480)]
+    pub height: u32,
+    /// Background colour, three numbers in [0, 1].
+    #[arg(long, value_delimiter = ',', default_values_t = [0.0, 0.0, 0.0])]
+    pub background: Vec<f32>,
+}
+
+pub fn run(args: RenderArgs) -> Result<()> {
+    let model = read_splats(&args.model)?;
+    if args.background.len() != 3 {
+        bail!("--background takes three numbers, e.g. 1,1,1");
+    }
+    let cameras: Vec<(String, Camera<f32>)> = match &args.capture {
+        Some(c) => {
+            let capture = Capture::load(c)?;
+            let k = *capture.intrinsics();
+            camera_views(&capture, ViewSet::Arm(args.arm))
+                .into_iter()
+                .map(|v| {
+                    let m = v.camera_to_object.inverse().to_homogeneous();
+                    let mut viewmat = [[0.0f32; 4]; 4];
+                    for (r, row) in viewmat.iter_mut().enumerate() {
+                        for (col, x) in row.iter_mut().enumerate() {
+                            *x = m[(r, col)] as f32;
+                        }
+                    }
+                    let name = std::path::Path::new(&capture.file.frames[v.frame_index].file_path)
+                        .file_stem()
+                        .unwrap()
+                        .to_string_lossy()
+                        .to_string();
+                    (
+                        name,
+                        Camera {
+                            viewmat,
+                            fx: k.fx as f32,
+                            fy: k.fy as f32,
+                            cx: k.cx as f32,
+                            cy: k.cy as f32,
+                            width: k.width,
+                            height: k.height,
+                            near: 0.01,
+                            far: 100.0,
+                        },
+                    )
+                })
+                .collect()
+        }
+        None => omniscan_splat::orbit::orbit_cameras(&model, args.orbit, args.width, args.height)
+            .into_iter()
+            .enumerate()
+            .map(|(i, c)| (format!("orbit_{i:03}"), c))
+            .collect(),
+    };
+    let settings = Settings {
+        eps2d: 0.3,
+        mode: if model.antialiased {
+            Mode::Antialiased
+        } else {
+            Mode::Classic
+        },
+        background: [args.background[0], args.background[1], args.background[2]],
+    };
+    let gaussians = model.gaussians::<f32>();
+    let bar = indicatif::ProgressBar::new(cameras.len() as u64);
+    cameras
+        .par_iter()
+        .try_for_each(|(name, camera)| -> Result<()> {
+            let (_, r) = render(&gaussians, camera, &settings);
+            let data = r
+                .rgb
+                .iter()
+                .flat_map(|c| c.map(|v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8))
+                .collect();
+            write_rgb(
+                &args.out.join(format!("{name}.png")),
+                &RgbImage {
+                    width: r.width,
+                    height: r.height,
+                    data,
+                },
+            )?;
+            bar.inc(1);
+            Ok(())
+        })?;
+    bar.finish_and_clear();
+    println!("wrote {} images to {}", cameras.len(), args.out.display());
+    Ok(())
+}
