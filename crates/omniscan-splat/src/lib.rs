@@ -13,6 +13,7 @@
 // variable; iterator chains would hide the maths.
 #![allow(clippy::needless_range_loop)]
 
+pub mod backward;
 pub mod model;
 pub mod orbit;
 pub mod ply;

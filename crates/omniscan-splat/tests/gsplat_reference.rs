@@ -213,3 +213,149 @@ fn every_real_splat_model_loads_and_renders() {
     }
     assert_eq!(n, 14);
 }
+
+fn case_inputs(d: &Value) -> (Gaussians<f64>, Camera<f64>, Settings<f64>) {
+    let (inp, cfg) = (&d["inputs"], &d["config"]);
+    let colors = match cfg["sh_degree"].as_u64() {
+        Some(deg) => {
+            let coeffs: Vec<Vec<[f64; 3]>> =
+                serde_json::from_value(inp["sh_coeffs"].clone()).unwrap();
+            Colors::Sh {
+                degree: deg as usize,
+                coeffs: coeffs.into_iter().flatten().collect(),
+            }
+        }
+        None => Colors::Rgb(v3(&inp["colors"])),
+    };
+    let g = Gaussians {
+        means: v3(&inp["means"]),
+        scales: v3(&inp["scales"]),
+        quats: serde_json::from_value(inp["quats_wxyz"].clone()).unwrap(),
+        opacities: serde_json::from_value(inp["opacities"].clone()).unwrap(),
+        colors,
+    };
+    let k: [[f64; 3]; 3] = serde_json::from_value(inp["K"].clone()).unwrap();
+    let camera = Camera {
+        viewmat: serde_json::from_value(inp["viewmat"].clone()).unwrap(),
+        fx: k[0][0],
+        fy: k[1][1],
+        cx: k[0][2],
+        cy: k[1][2],
+        width: cfg["width"].as_u64().unwrap() as u32,
+        height: cfg["height"].as_u64().unwrap() as u32,
+        near: cfg["near_plane"].as_f64().unwrap(),
+        far: cfg["far_plane"].as_f64().unwrap(),
+    };
+    let mode = if cfg["rasterize_mode"] == "antialiased" {
+        Mode::Antialiased
+    } else {
+        Mode::Classic
+    };
+    let bg: Vec<f64> = serde_json::from_value(inp["background"].clone()).unwrap();
+    (
+        g,
+        camera,
+        Settings {
+            eps2d: cfg["eps2d"].as_f64().unwrap(),
+            mode,
+            background: [bg[0], bg[1], bg[2]],
+        },
+    )
+}
+
+#[test]
+#[ignore = "needs ../shared"]
+fn gradients_match_gsplat_autograd() {
+    for case in CASES {
+        let d = reference(case);
+        let (g, camera, settings) = case_inputs(&d);
+        let (p, _) = render(&g, &camera, &settings);
+        let w_rgb: Vec<Vec<[f64; 3]>> = serde_json::from_value(d["loss"]["w_rgb"].clone()).unwrap();
+        let w_alpha: Vec<Vec<f64>> = serde_json::from_value(d["loss"]["w_alpha"].clone()).unwrap();
+        let d_rgb: Vec<[f64; 3]> = w_rgb.into_iter().flatten().collect();
+        let d_alpha: Vec<f64> = w_alpha.into_iter().flatten().collect();
+        let grads =
+            omniscan_splat::backward::backward(&g, &camera, &settings, &p, &d_rgb, &d_alpha);
+        let gr = &d["grads"];
+        let check = |name: &str, got: Vec<f64>, want: Vec<f64>| {
+            assert_eq!(got.len(), want.len(), "{case}: {name} length");
+            let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(1e-12);
+            for (k, (a, b)) in got.iter().zip(&want).enumerate() {
+                assert!(
+                    (a - b).abs() <= 1e-7 * scale + 1e-9 * b.abs(),
+                    "{case}: {name}[{k}] = {a} vs {b} (scale {scale})"
+                );
+            }
+        };
+        let flat = |v: &Value| -> Vec<f64> {
+            match v {
+                Value::Array(a) => a
+                    .iter()
+                    .flat_map(|x| match x {
+                        Value::Array(_) => flat_inner(x),
+                        other => vec![other.as_f64().unwrap()],
+                    })
+                    .collect(),
+                other => vec![other.as_f64().unwrap()],
+            }
+        };
+        check(
+            "means2d",
+            grads.means2d.iter().flatten().copied().collect(),
+            flat(&gr["means2d"]),
+        );
+        check(
+            "conics",
+            grads.conics.iter().flatten().copied().collect(),
+            flat(&gr["conics"]),
+        );
+        check(
+            "opacities_view",
+            grads.opacities_view.clone(),
+            flat(&gr["opacities_view"]),
+        );
+        check("opacities", grads.opacities.clone(), flat(&gr["opacities"]));
+        check(
+            "opacity_logits",
+            grads.opacity_logits(&g),
+            flat(&gr["opacity_logits"]),
+        );
+        check(
+            "scales",
+            grads.scales.iter().flatten().copied().collect(),
+            flat(&gr["scales"]),
+        );
+        check(
+            "log_scales",
+            grads.log_scales(&g).iter().flatten().copied().collect(),
+            flat(&gr["log_scales"]),
+        );
+        check(
+            "quats",
+            grads.quats.iter().flatten().copied().collect(),
+            flat(&gr["quats"]),
+        );
+        let color_key = if gr.get("sh_coeffs").is_some() {
+            "sh_coeffs"
+        } else {
+            "colors"
+        };
+        check(
+            color_key,
+            grads.colors.iter().flatten().copied().collect(),
+            flat(&gr[color_key]),
+        );
+        check(
+            "means",
+            grads.means.iter().flatten().copied().collect(),
+            flat(&gr["means"]),
+        );
+    }
+}
+
+fn flat_inner(v: &Value) -> Vec<f64> {
+    match v {
+        Value::Array(a) => a.iter().flat_map(flat_inner).collect(),
+        other => vec![other.as_f64().unwrap()],
+    }
+}

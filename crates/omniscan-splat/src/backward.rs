@@ -1,0 +1,724 @@
+//! Analytic gradients of the CPU reference rasterizer (the backward pass of
+//! `raster`), from per-pixel gradients of colour and alpha down to every
+//! Gaussian parameter, through the same steps in reverse:
+//!
+//! - compositing, per pixel from the last contributor to the first, with the
+//!   colour accumulated behind each Gaussian (alpha clamped at 0.999 passes
+//!   no gradient, as in gsplat);
+//! - the Gaussian falloff to the 2D mean, conic and view opacity;
+//! - the inverse 2D covariance, the EWA Jacobian (with its clamp just
+//!   outside the view), the view rotation, the 3D covariance R·S·Sᵀ·Rᵀ, the
+//!   quaternion normalisation, the activations exp and sigmoid;
+//! - spherical harmonics, including the view direction's dependence on the mean.
+//!
+//! Per-tile partial sums are added in tile order, so gradients are
+//! deterministic. Checked against gsplat's float64 autograd gradients and
+//! against finite differences.
+
+use rayon::prelude::*;
+
+use crate::Real;
+use crate::raster::{
+    Camera, Colors, Gaussians, Mode, Projected, Settings, covariance, quat_to_rotmat, tile_lists,
+};
+use crate::sh;
+
+/// Gradients with respect to the rasterizer's intermediates and the activated parameters.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Gradients<F> {
+    pub means2d: Vec<[F; 2]>,
+    pub conics: Vec<[F; 3]>,
+    pub opacities_view: Vec<F>,
+    /// With respect to the view-dependent colour (after the SH clamp).
+    pub colors_view: Vec<[F; 3]>,
+    pub means: Vec<[F; 3]>,
+    /// With respect to the quaternion as given (not normalised).
+    pub quats: Vec<[F; 4]>,
+    /// With respect to the activated scales (multiply by the scale for log-scales).
+    pub scales: Vec<[F; 3]>,
+    /// With respect to the activated opacities.
+    pub opacities: Vec<F>,
+    /// With respect to the colours: RGB, or SH coefficients (basis index major).
+    pub colors: Vec<[F; 3]>,
+}
+
+impl<F: Real> Gradients<F> {
+    /// Gradients with respect to log-scales: dL/ds · s.
+    pub fn log_scales(&self, g: &Gaussians<F>) -> Vec<[F; 3]> {
+        self.scales
+            .iter()
+            .zip(&g.scales)
+            .map(|(d, s)| [d[0] * s[0], d[1] * s[1], d[2] * s[2]])
+            .collect()
+    }
+    /// Gradients with respect to opacity logits: dL/do · o(1 − o).
+    pub fn opacity_logits(&self, g: &Gaussians<F>) -> Vec<F> {
+        self.opacities
+            .iter()
+            .zip(&g.opacities)
+            .map(|(d, &o)| *d * o * (F::one() - o))
+            .collect()
+    }
+}
+
+const ALPHA_MAX: f64 = 0.999;
+const ALPHA_MIN: f64 = 1.0 / 255.0;
+const T_STOP: f64 = 1e-4;
+
+/// Per-tile accumulators: (Gaussian, d mean2d, d conic, d opacity_view, d colour).
+type TileGrads<F> = Vec<(u32, [F; 2], [F; 3], F, [F; 3])>;
+
+/// Gradients of L given dL/d(rgb) and dL/d(alpha) per pixel (row-major).
+pub fn backward<F: Real>(
+    g: &Gaussians<F>,
+    camera: &Camera<F>,
+    settings: &Settings<F>,
+    p: &Projected<F>,
+    d_rgb: &[[F; 3]],
+    d_alpha: &[F],
+) -> Gradients<F> {
+    let n = g.means.len();
+    let (width, height) = (camera.width, camera.height);
+    let tiles = tile_lists(p, width, height);
+    let tx = width.div_ceil(crate::raster::TILE);
+    let tile = crate::raster::TILE;
+    let per_tile: Vec<TileGrads<F>> = (0..tiles.len())
+        .into_par_iter()
+        .map(|t| {
+            let list = &tiles[t];
+            let mut acc: TileGrads<F> = list
+                .iter()
+                .map(|&i| (i, [F::zero(); 2], [F::zero(); 3], F::zero(), [F::zero(); 3]))
+                .collect();
+            let (ox, oy) = ((t as u32 % tx) * tile, (t as u32 / tx) * tile);
+            let mut contributors: Vec<(usize, F, F, F, bool)> = Vec::new();
+            for py in oy..(oy + tile).min(height) {
+                for px in ox..(ox + tile).min(width) {
+                    let (fx, fy) = (F::c(px as f64 + 0.5), F::c(py as f64 + 0.5));
+                    // Forward again, remembering who contributed.
+                    contributors.clear();
+                    let mut t_acc = F::one();
+                    for (slot, &gi) in list.iter().enumerate() {
+                        let gi = gi as usize;
+                        let [a, b, c] = p.conics[gi];
+                        let dx = p.means2d[gi][0] - fx;
+                        let dy = p.means2d[gi][1] - fy;
+                        let sigma = F::c(0.5) * (a * dx * dx + c * dy * dy) + b * dx * dy;
+                        if sigma < F::zero() {
+                            continue;
+                        }
+                        let vis = (-sigma).exp();
+                        let raw = p.opacities[gi] * vis;
+                        let alpha = raw.min(F::c(ALPHA_MAX));
+                        if alpha < F::c(ALPHA_MIN) {
+                            continue;
+                        }
+                        let next = t_acc * (F::one() - alpha);
+                        if next <= F::c(T_STOP) {
+                            break;
+                        }
+                        contributors.push((slot, alpha, vis, t_acc, raw > F::c(ALPHA_MAX)));
+                        t_acc = next;
+                    }
+                    let pix = (py * width + px) as usize;
+                    let dc = d_rgb[pix];
+                    let da = d_alpha[pix];
+                    let t_final = t_acc;
+                    let mut behind = settings.background.map(|bg| bg * t_final);
+                    for &(slot, alpha, vis, t_i, clamped) in contributors.iter().rev() {
+                        let gi = list[slot] as usize;
+                        let c = p.colors[gi];
+                        let entry = &mut acc[slot];
+                        let w = alpha * t_i;
+                        for ch in 0..3 {
+                            entry.4[ch] = entry.4[ch] + w * dc[ch];
+                        }
+                        let one_minus = F::one() - alpha;
+                        let mut d_alpha_i = da * t_final / one_minus;
+                        for ch in 0..3 {
+                            d_alpha_i = d_alpha_i + dc[ch] * (c[ch] * t_i - behind[ch] / one_minus);
+                            behind[ch] = behind[ch] + c[ch] * w;
+                        }
+                        if clamped {
+                            continue;
+                        }
+                        entry.3 = entry.3 + d_alpha_i * vis;
+                        let d_sigma = -d_alpha_i * alpha;
+                        let [a, b, cc] = p.conics[gi];
+                        let dx = p.means2d[gi][0] - fx;
+                        let dy = p.means2d[gi][1] - fy;
+                        entry.2[0] = entry.2[0] + d_sigma * F::c(0.5) * dx * dx;
+                        entry.2[1] = entry.2[1] + d_sigma * dx * dy;
+                        entry.2[2] = entry.2[2] + d_sigma * F::c(0.5) * dy * dy;
+                        entry.1[0] = entry.1[0] + d_sigma * (a * dx + b * dy);
+                        entry.1[1] = entry.1[1] + d_sigma * (b * dx + cc * dy);
+                    }
+                }
+            }
+            acc
+        })
+        .collect();
+
+    let mut d_mean2d = vec![[F::zero(); 2]; n];
+    let mut d_conic = vec![[F::zero(); 3]; n];
+    let mut d_opacity_view = vec![F::zero(); n];
+    let mut d_color_view = vec![[F::zero(); 3]; n];
+    for tile_grads in per_tile {
+        for (i, m, c, o, col) in tile_grads {
+            let i = i as usize;
+            for k in 0..2 {
+                d_mean2d[i][k] = d_mean2d[i][k] + m[k];
+            }
+            for k in 0..3 {
+                d_conic[i][k] = d_conic[i][k] + c[k];
+                d_color_view[i][k] = d_color_view[i][k] + col[k];
+            }
+            d_opacity_view[i] = d_opacity_view[i] + o;
+        }
+    }
+    let mut grads = Gradients {
+        means2d: d_mean2d,
+        conics: d_conic,
+        opacities_view: d_opacity_view,
+        colors_view: d_color_view,
+        means: vec![[F::zero(); 3]; n],
+        quats: vec![[F::zero(); 4]; n],
+        scales: vec![[F::zero(); 3]; n],
+        opacities: vec![F::zero(); n],
+        colors: match &g.colors {
+            Colors::Rgb(c) => vec![[F::zero(); 3]; c.len()],
+            Colors::Sh { coeffs, .. } => vec![[F::zero(); 3]; coeffs.len()],
+        },
+    };
+    project_backward(g, camera, settings, p, &mut grads);
+    grads
+}
+
+fn mat3_mul<F: Real>(a: &[[F; 3]; 3], b: &[[F; 3]; 3]) -> [[F; 3]; 3] {
+    let mut o = [[F::zero(); 3]; 3];
+    for i in 0..3 {
+        for j in 0..3 {
+            o[i][j] = a[i][0] * b[0][j] + a[i][1] * b[1][j] + a[i][2] * b[2][j];
+        }
+    }
+    o
+}
+
+fn mat3_t<F: Real>(a: &[[F; 3]; 3]) -> [[F; 3]; 3] {
+    let mut o = [[F::zero(); 3]; 3];
+    for i in 0..3 {
+        for j in 0..3 {
+            o[i][j] = a[j][i];
+        }
+    }
+    o
+}
+
+/// Derivatives of the SH basis with respect to the (unit) direction.
+fn basis_gradient<F: Real>(degree: usize, d: [F; 3]) -> Vec<[F; 3]> {
+    let c = F::c;
+    let [x, y, z] = d;
+    let (c1, z0) = (c(0.488_602_511_902_919_9), F::zero());
+    let mut out = vec![[z0; 3]];
+    if degree >= 1 {
+        out.extend([[z0, -c1, z0], [z0, z0, c1], [-c1, z0, z0]]);
+    }
+    if degree >= 2 {
+        let k = [
+            1.092_548_430_592_079_2,
+            -1.092_548_430_592_079_2,
+            0.315_391_565_252_520_05,
+            -1.092_548_430_592_079_2,
+            0.546_274_215_296_039_6,
+        ]
+        .map(c);
+        out.extend([
+            [k[0] * y, k[0] * x, z0],
+            [z0, k[1] * z, k[1] * y],
+            [c(-2.0) * k[2] * x, c(-2.0) * k[2] * y, c(4.0) * k[2] * z],
+            [k[3] * z, z0, k[3] * x],
+            [c(2.0) * k[4] * x, c(-2.0) * k[4] * y, z0],
+        ]);
+    }
+    if degree >= 3 {
+        let k = [
+            -0.590_043_589_926_643_5,
+            2.890_611_442_640_554,
+            -0.457_045_799_464_465_8,
+            0.373_176_332_590_115_4,
+            -0.457_045_799_464_465_8,
+            1.445_305_721_320_277,
+            -0.590_043_589_926_643_5,
+        ]
+        .map(c);
+        let (xx, yy, zz) = (x * x, y * y, z * z);
+        out.extend([
+            [
+                c(6.0) * k[0] * x * y,
+                k[0] * (c(3.0) * xx - c(3.0) * yy),
+                z0,
+            ],
+            [k[1] * y * z, k[1] * x * z, k[1] * x * y],
+            [
+                c(-2.0) * k[2] * x * y,
+                k[2] * (c(4.0) * zz - xx - c(3.0) * yy),
+                c(8.0) * k[2] * y * z,
+            ],
+            [
+                c(-6.0) * k[3] * x * z,
+                c(-6.0) * k[3] * y * z,
+                k[3] * (c(6.0) * zz - c(3.0) * xx - c(3.0) * yy),
+            ],
+            [
+                k[4] * (c(4.0) * zz - c(3.0) * xx - yy),
+                c(-2.0) * k[4] * x * y,
+                c(8.0) * k[4] * x * z,
+            ],
+            [
+                c(2.0) * k[5] * x * z,
+                c(-2.0) * k[5] * y * z,
+                k[5] * (xx - yy),
+            ],
+            [
+                k[6] * (c(3.0) * xx - c(3.0) * yy),
+                c(-6.0) * k[6] * x * y,
+                z0,
+            ],
+        ]);
+    }
+    out
+}
+
+fn project_backward<F: Real>(
+    g: &Gaussians<F>,
+    camera: &Camera<F>,
+    settings: &Settings<F>,
+    p: &Projected<F>,
+    grads: &mut Gradients<F>,
+) {
+    let v = &camera.viewmat;
+    let rot = [
+        [v[0][0], v[0][1], v[0][2]],
+        [v[1][0], v[1][1], v[1][2]],
+        [v[2][0], v[2][1], v[2][2]],
+    ];
+    let trans = [v[0][3], v[1][3], v[2][3]];
+    let campos =
+        [0, 1, 2].map(|j| -(rot[0][j] * trans[0] + rot[1][j] * trans[1] + rot[2][j] * trans[2]));
+    let (w, h) = (F::c(camera.width as f64), F::c(camera.height as f64));
+    let (fx, fy) = (camera.fx, camera.fy);
+    let tan_x = F::c(0.5) * w / fx;
+    let tan_y = F::c(0.5) * h / fy;
+    let lim_x_pos = (w - camera.cx) / fx + F::c(0.3) * tan_x;
+    let lim_x_neg = camera.cx / fx + F::c(0.3) * tan_x;
+    let lim_y_pos = (h - camera.cy) / fy + F::c(0.3) * tan_y;
+    let lim_y_neg = camera.cy / fy + F::c(0.3) * tan_y;
+    let two = F::c(2.0);
+    for i in 0..g.means.len() {
+        if !p.visible(i) {
+            continue;
+        }
+        let m = g.means[i];
+        let pc =
+            [0, 1, 2].map(|r| rot[r][0] * m[0] + rot[r][1] * m[1] + rot[r][2] * m[2] + trans[r]);
+        let (x, y, z) = (pc[0], pc[1], pc[2]);
+        // Opacity (and the antialiasing compensation).
+        let d_ov = grads.opacities_view[i];
+        let (d_opacity, d_comp) = match settings.mode {
+            Mode::Classic => (d_ov, F::zero()),
+            Mode::Antialiased => (d_ov * p.compensations[i], d_ov * g.opacities[i]),
+        };
+        grads.opacities[i] = d_opacity;
+        // Colour: through the clamp, to RGB or SH (and the SH view direction).
+        let mut d_pc = [F::zero(); 3];
+        let mut d_mean = [F::zero(); 3];
+        match &g.colors {
+            Colors::Rgb(_) => grads.colors[i] = grads.colors_view[i],
+            Colors::Sh { degree, coeffs } => {
+                let k = sh::coefficients(*degree);
+                let dvec = [m[0] - campos[0], m[1] - campos[1], m[2] - campos[2]];
+                let len = (dvec[0] * dvec[0] + dvec[1] * dvec[1] + dvec[2] * dvec[2]).sqrt();
+                let dir = dvec.map(|t| t / len);
+                let raw = sh::evaluate(*degree, dir, &coeffs[i * k..(i + 1) * k]);
+                let d_raw: [F; 3] = [0, 1, 2].map(|ch| {
+                    if raw[ch] + F::c(0.5) < F::zero() {
+                        F::zero()
+                    } else {
+                        grads.colors_view[i][ch]
+                    }
+                });
+                let basis = sh::basis(*degree, dir);
+                for kk in 0..k {
+                    for ch in 0..3 {
+                        grads.colors[i * k + kk][ch] = basis[kk] * d_raw[ch];
+                    }
+                }
+                let dbasis = basis_gradient(*degree, dir);
+                let mut d_dir = [F::zero(); 3];
+                for kk in 0..k {
+                    let s: F = (0..3).map(|ch| coeffs[i * k + kk][ch] * d_raw[ch]).sum();
+                    for a in 0..3 {
+                        d_dir[a] = d_dir[a] + dbasis[kk][a] * s;
+                    }
+                }
+                // Through the normalisation d = v/|v|.
+                let dot = d_dir[0] * dir[0] + d_dir[1] * dir[1] + d_dir[2] * dir[2];
+                for a in 0..3 {
+                    d_mean[a] = d_mean[a] + (d_dir[a] - dir[a] * dot) / len;
+                }
+            }
+        }
+        // Recompute the forward quantities this Gaussian needs.
+        let cov_w = covariance(g.quats[i], g.scales[i]);
+        let cov_c = mat3_mul(&mat3_mul(&rot, &cov_w), &mat3_t(&rot));
+        let (rx, ry) = (x / z, y / z);
+        let clamped_x = rx < -lim_x_neg || rx > lim_x_pos;
+        let clamped_y = ry < -lim_y_neg || ry > lim_y_pos;
+        let tx = z * rx.max(-lim_x_neg).min(lim_x_pos);
+        let ty = z * ry.max(-lim_y_neg).min(lim_y_pos);
+        let j = [
+            [fx / z, F::zero(), -fx * tx / (z * z)],
+            [F::zero(), fy / z, -fy * ty / (z * z)],
+        ];
+        let mut cov2 = [[F::zero(); 2]; 2];
+        for r in 0..2 {
+            for c in 0..2 {
+                let mut s = F::zero();
+                for a in 0..3 {
+                    for b in 0..3 {
+                        s = s + j[r][a] * cov_c[a][b] * j[c][b];
+                    }
+                }
+                cov2[r][c] = s;
+            }
+        }
+        let (a, b, c) = (
+            cov2[0][0] + settings.eps2d,
+            (cov2[0][1] + cov2[1][0]) * F::c(0.5),
+            cov2[1][1] + settings.eps2d,
+        );
+        let det = a * c - b * b;
+        // Conic = inverse of [[a, b], [b, c]]; dL/dCov = −Inv·G·Inv with G symmetric.
+        let inv = [[c / det, -b / det], [-b / det, a / det]];
+        let dc = grads.conics[i];
+        let gm = [[dc[0], dc[1] * F::c(0.5)], [dc[1] * F::c(0.5), dc[2]]];
+        let mut d_cov2 = [[F::zero(); 2]; 2];
+        for r in 0..2 {
+            for s in 0..2 {
+                let mut acc = F::zero();
+                for u in 0..2 {
+                    for t in 0..2 {
+                        acc = acc + inv[r][u] * gm[u][t] * inv[t][s];
+                    }
+                }
+                d_cov2[r][s] = -acc;
+            }
+        }
+        if settings.mode == Mode::Antialiased && d_comp != F::zero() {
+            // comp = sqrt(det(cov) / det(cov + εI)); d comp/d cov = comp/2 · (cov⁻¹ − (cov + εI)⁻¹).
+            let det_raw = cov2[0][0] * cov2[1][1] - cov2[0][1] * cov2[1][0];
+            let comp = p.compensations[i];
+            if det_raw > F::zero() && comp > F::zero() {
+                let inv_raw = [
+                    [cov2[1][1] / det_raw, -cov2[0][1] / det_raw],
+                    [-cov2[1][0] / det_raw, cov2[0][0] / det_raw],
+                ];
+                for r in 0..2 {
+                    for s in 0..2 {
+                        d_cov2[r][s] =
+                            d_cov2[r][s] + d_comp * comp * F::c(0.5) * (inv_raw[r][s] - inv[r][s]);
+                    }
+                }
+            }
+        }
+        // Mean: means2d = (fx x/z + cx, fy y/z + cy).
+        let dm2 = grads.means2d[i];
+        d_pc[0] = d_pc[0] + dm2[0] * fx / z;
+        d_pc[1] = d_pc[1] + dm2[1] * fy / z;
+        d_pc[2] = d_pc[2] - dm2[0] * fx * x / (z * z) - dm2[1] * fy * y / (z * z);
+        // cov2 = J Σc Jᵀ: dΣc = Jᵀ G J, dJ = (G + Gᵀ) J Σc.
+        let mut d_cov_c = [[F::zero(); 3]; 3];
+        for a in 0..3 {
+            for b in 0..3 {
+                let mut s = F::zero();
+                for r in 0..2 {
+                    for t in 0..2 {
+                        s = s + j[r][a] * d_cov2[r][t] * j[t][b];
+                    }
+                }
+                d_cov_c[a][b] = s;
+            }
+        }
+        let mut d_j = [[F::zero(); 3]; 2];
+        for r in 0..2 {
+            for a in 0..3 {
+                let mut s = F::zero();
+                for t in 0..2 {
+                    for b in 0..3 {
+                        s = s + (d_cov2[r][t] + d_cov2[t][r]) * j[t][b] * cov_c[b][a];
+                    }
+                }
+                d_j[r][a] = s;
+            }
+        }
+        // J's dependence on the camera-space mean (the clamp freezes x/z or y/z).
+        let z2 = z * z;
+        let z3 = z2 * z;
+        d_pc[2] = d_pc[2] - d_j[0][0] * fx / z2 - d_j[1][1] * fy / z2;
+        if clamped_x {
+            d_pc[2] = d_pc[2] + d_j[0][2] * fx * (tx / z) / z2;
+        } else {
+            d_pc[0] = d_pc[0] - d_j[0][2] * fx / z2;
+            d_pc[2] = d_pc[2] + d_j[0][2] * two * fx * tx / z3;
+        }
+        if clamped_y {
+            d_pc[2] = d_pc[2] + d_j[1][2] * fy * (ty / z) / z2;
+        } else {
+            d_pc[1] = d_pc[1] - d_j[1][2] * fy / z2;
+            d_pc[2] = d_pc[2] + d_j[1][2] * two * fy * ty / z3;
+        }
+        // Camera to world: mean through Rᵀ, covariance as Rᵀ dΣc R.
+        for a in 0..3 {
+            d_mean[a] = d_mean[a] + rot[0][a] * d_pc[0] + rot[1][a] * d_pc[1] + rot[2][a] * d_pc[2];
+        }
+        grads.means[i] = d_mean;
+        let d_cov_w = mat3_mul(&mat3_mul(&mat3_t(&rot), &d_cov_c), &rot);
+        // Σ = M Mᵀ, M = R S.
+        let r = quat_to_rotmat(g.quats[i]);
+        let s = g.scales[i];
+        let mut mm = r;
+        for row in &mut mm {
+            for (jj, val) in row.iter_mut().enumerate() {
+                *val = *val * s[jj];
+            }
+        }
+        let sym = {
+            let mut o = [[F::zero(); 3]; 3];
+            for a in 0..3 {
+                for b in 0..3 {
+                    o[a][b] = d_cov_w[a][b] + d_cov_w[b][a];
+                }
+            }
+            o
+        };
+        let d_m = mat3_mul(&sym, &mm);
+        let mut d_r = [[F::zero(); 3]; 3];
+        for a in 0..3 {
+            for b in 0..3 {
+                d_r[a][b] = d_m[a][b] * s[b];
+                grads.scales[i][b] = grads.scales[i][b] + d_m[a][b] * r[a][b];
+            }
+        }
+        // Rotation matrix to the normalised quaternion, then through the normalisation.
+        let q = g.quats[i];
+        let norm = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
+        let [qw, qx, qy, qz] = q.map(|t| t / norm);
+        let gq = d_r;
+        let d_hat = [
+            two * (-qz * gq[0][1] + qy * gq[0][2] + qz * gq[1][0] - qx * gq[1][2] - qy * gq[2][0]
+                + qx * gq[2][1]),
+            two * (qy * gq[0][1] + qz * gq[0][2] + qy * gq[1][0]
+                - two * qx * gq[1][1]
+                - qw * gq[1][2]
+                + qz * gq[2][0]
+                + qw * gq[2][1]
+                - two * qx * gq[2][2]),
+            two * (-two * qy * gq[0][0]
+                + qx * gq[0][1]
+                + qw * gq[0][2]
+                + qx * gq[1][0]
+                + qz * gq[1][2]
+                - qw * gq[2][0]
+                + qz * gq[2][1]
+                - two * qy * gq[2][2]),
+            two * (-two * qz * gq[0][0] - qw * gq[0][1] + qx * gq[0][2] + qw * gq[1][0]
+                - two * qz * gq[1][1]
+                + qy * gq[1][2]
+                + qx * gq[2][0]
+                + qy * gq[2][1]),
+        ];
+        let hat = [qw, qx, qy, qz];
+        let dot = (0..4).map(|k| d_hat[k] * hat[k]).sum::<F>();
+        grads.quats[i] = [0, 1, 2, 3].map(|k| (d_hat[k] - hat[k] * dot) / norm);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::raster::{Colors, Mode, render};
+
+    /// A deterministic pseudo-random sequence in [0, 1).
+    struct Lcg(u64);
+    impl Lcg {
+        fn next(&mut self) -> f64 {
+            self.0 = self
+                .0
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (self.0 >> 11) as f64 / (1u64 << 53) as f64
+        }
+    }
+
+    /// A scene with its camera, settings and the loss weights for colour and alpha.
+    type Scene = (
+        Gaussians<f64>,
+        Camera<f64>,
+        Settings<f64>,
+        Vec<[f64; 3]>,
+        Vec<f64>,
+    );
+
+    fn scene(mode: Mode, sh_degree: Option<usize>) -> Scene {
+        let mut r = Lcg(7);
+        let n = 12;
+        let mut g = Gaussians {
+            means: (0..n)
+                .map(|_| [r.next() - 0.5, r.next() - 0.5, 2.0 + r.next()])
+                .collect(),
+            scales: (0..n)
+                .map(|_| {
+                    [
+                        0.05 + 0.1 * r.next(),
+                        0.05 + 0.1 * r.next(),
+                        0.05 + 0.1 * r.next(),
+                    ]
+                })
+                .collect(),
+            quats: (0..n)
+                .map(|_| {
+                    [
+                        r.next() + 0.2,
+                        r.next() - 0.5,
+                        r.next() - 0.5,
+                        r.next() - 0.5,
+                    ]
+                })
+                .collect(),
+            opacities: (0..n).map(|_| 0.2 + 0.7 * r.next()).collect(),
+            colors: Colors::Rgb((0..n).map(|_| [r.next(), r.next(), r.next()]).collect()),
+        };
+        if let Some(d) = sh_degree {
+            let k = crate::sh::coefficients(d);
+            g.colors = Colors::Sh {
+                degree: d,
+                coeffs: (0..n * k)
+                    .map(|_| [r.next() - 0.5, r.next() - 0.5, r.next() - 0.5])
+                    .collect(),
+            };
+        }
+        let camera = Camera {
+            viewmat: [
+                [1.0, 0.0, 0.0, 0.05],
+                [0.0, 0.96, -0.28, 0.1],
+                [0.0, 0.28, 0.96, 0.0],
+                [0.0, 0.0, 0.0, 1.0],
+            ],
+            fx: 30.0,
+            fy: 28.0,
+            cx: 12.3,
+            cy: 9.7,
+            width: 24,
+            height: 20,
+            near: 0.01,
+            far: 100.0,
+        };
+        let settings = Settings {
+            eps2d: 0.3,
+            mode,
+            background: [0.1, 0.2, 0.3],
+        };
+        let px = (camera.width * camera.height) as usize;
+        let w_rgb = (0..px)
+            .map(|_| {
+                [
+                    r.next() * 2.0 - 1.0,
+                    r.next() * 2.0 - 1.0,
+                    r.next() * 2.0 - 1.0,
+                ]
+            })
+            .collect();
+        let w_a = (0..px).map(|_| r.next() * 2.0 - 1.0).collect();
+        (g, camera, settings, w_rgb, w_a)
+    }
+
+    fn loss(
+        g: &Gaussians<f64>,
+        camera: &Camera<f64>,
+        settings: &Settings<f64>,
+        w_rgb: &[[f64; 3]],
+        w_a: &[f64],
+    ) -> f64 {
+        let (_, r) = render(g, camera, settings);
+        let mut l = 0.0;
+        for i in 0..w_a.len() {
+            l += w_a[i] * r.alpha[i];
+            for ch in 0..3 {
+                l += w_rgb[i][ch] * r.rgb[i][ch];
+            }
+        }
+        l
+    }
+
+    #[test]
+    fn gradients_agree_with_central_differences() {
+        for (mode, sh_degree) in [(Mode::Classic, None), (Mode::Antialiased, Some(2))] {
+            let (g, camera, settings, w_rgb, w_a) = scene(mode, sh_degree);
+            let (p, _) = render(&g, &camera, &settings);
+            let grads = backward(&g, &camera, &settings, &p, &w_rgb, &w_a);
+            let h = 1e-6;
+            let numeric = |edit: &dyn Fn(&mut Gaussians<f64>, f64)| {
+                let mut plus = g.clone();
+                edit(&mut plus, h);
+                let mut minus = g.clone();
+                edit(&mut minus, -h);
+                (loss(&plus, &camera, &settings, &w_rgb, &w_a)
+                    - loss(&minus, &camera, &settings, &w_rgb, &w_a))
+                    / (2.0 * h)
+            };
+            let compare = |name: &str, analytic: f64, fd: f64| {
+                assert!(
+                    (analytic - fd).abs() <= 1e-4 * (1.0 + fd.abs()),
+                    "{mode:?} {name}: analytic {analytic} vs numeric {fd}"
+                );
+            };
+            for i in 0..g.means.len() {
+                for a in 0..3 {
+                    compare(
+                        &format!("mean[{i}][{a}]"),
+                        grads.means[i][a],
+                        numeric(&|g, e| g.means[i][a] += e),
+                    );
+                    compare(
+                        &format!("scale[{i}][{a}]"),
+                        grads.scales[i][a],
+                        numeric(&|g, e| g.scales[i][a] += e),
+                    );
+                }
+                for a in 0..4 {
+                    compare(
+                        &format!("quat[{i}][{a}]"),
+                        grads.quats[i][a],
+                        numeric(&|g, e| g.quats[i][a] += e),
+                    );
+                }
+                compare(
+                    &format!("opacity[{i}]"),
+                    grads.opacities[i],
+                    numeric(&|g, e| g.opacities[i] += e),
+                );
+            }
+            let colors = grads.colors.len();
+            for c in (0..colors).step_by(3) {
+                compare(
+                    &format!("colour[{c}]"),
+                    grads.colors[c][1],
+                    numeric(&|g, e| match &mut g.colors {
+                        Colors::Rgb(v) => v[c][1] += e,
+                        Colors::Sh { coeffs, .. } => coeffs[c][1] += e,
+                    }),
+                );
+            }
+        }
+    }
+}
