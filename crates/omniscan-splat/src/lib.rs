@@ -19,6 +19,7 @@ pub mod orbit;
 pub mod ply;
 pub mod raster;
 pub mod sh;
+pub mod transform;
 
 use std::path::{Path, PathBuf};
 
