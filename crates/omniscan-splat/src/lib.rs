@@ -14,6 +14,7 @@
 #![allow(clippy::needless_range_loop)]
 
 pub mod backward;
+pub mod metrics;
 pub mod model;
 pub mod orbit;
 pub mod ply;
