@@ -20,6 +20,7 @@ pub mod orbit;
 pub mod ply;
 pub mod raster;
 pub mod sh;
+pub mod train;
 pub mod transform;
 
 use std::path::{Path, PathBuf};

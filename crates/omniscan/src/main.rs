@@ -3,6 +3,7 @@
 
 mod registration;
 mod render;
+mod train;
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -61,6 +62,10 @@ enum Command {
         #[arg(long)]
         no_masks: bool,
     },
+    /// Train a splat model on a capture with the paper's masked losses (CPU).
+    Train(train::TrainArgs),
+    /// PSNR and SSIM of a splat model against a capture's views (whole and masked).
+    Eval(train::EvalArgs),
     /// Render a splat model from orbiting cameras or a capture's cameras.
     Render(render::RenderArgs),
     /// Register SOURCE onto TARGET (point clouds or splat models) and write the transform.
@@ -380,6 +385,8 @@ fn run(cli: Cli) -> Result<()> {
         }
         Command::Align(args) => registration::align(args)?,
         Command::Render(args) => render::run(args)?,
+        Command::Train(args) => train::run(args)?,
+        Command::Eval(args) => train::eval(args)?,
         Command::Bench {
             which: BenchCommand::Registration(args),
         } => registration::bench(args)?,

@@ -308,3 +308,116 @@ fn align_recovers_a_known_transform_and_reports_open3d_style_fields() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("rigid"));
 }
+
+#[test]
+fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
+    let tmp = tempfile::tempdir().unwrap();
+    let capture = tmp.path().join("cap");
+    let out = omniscan(&[
+        "sim",
+        "--object",
+        "builtin:remote",
+        "--out",
+        capture.to_str().unwrap(),
+        "--width",
+        "160",
+        "--height",
+        "120",
+        "--wrist-angles",
+        "8",
+        "--latitudes",
+        "3",
+        "--supersample",
+        "1",
+        "--no-empty-pass",
+        "--depth-noise-mm-at-1m",
+        "0",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let model = tmp.path().join("model.ply");
+    let run = |steps: &str| -> serde_json::Value {
+        let out = omniscan(&[
+            "train",
+            capture.to_str().unwrap(),
+            "--arm",
+            "left",
+            "--out",
+            model.to_str().unwrap(),
+            "--steps",
+            steps,
+            "--downscale",
+            "1",
+            "--initial-points",
+            "1500",
+            "--sh-degree",
+            "1",
+            "--json",
+        ]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        serde_json::from_slice(&out.stdout).unwrap()
+    };
+    let short = run("10");
+    let long = run("300");
+    let metric = |r: &serde_json::Value, k: &str| r["test"][k].as_f64().unwrap();
+    assert_eq!(long["test"]["views"], 3);
+    // Held-out views (every 8th): the model improves with training and reaches a usable level.
+    assert!(
+        metric(&long, "ssim_masked") > metric(&short, "ssim_masked") + 0.05,
+        "{long} vs {short}"
+    );
+    assert!(
+        metric(&long, "psnr_masked") > metric(&short, "psnr_masked"),
+        "{long} vs {short}"
+    );
+    assert!(
+        metric(&long, "psnr_masked") > 22.0 && metric(&long, "psnr") > 28.0,
+        "{long}"
+    );
+    assert!(long["test"]["lpips"].is_null());
+    let out = omniscan(&[
+        "eval",
+        model.to_str().unwrap(),
+        capture.to_str().unwrap(),
+        "--arm",
+        "left",
+        "--json",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let eval: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    for key in ["psnr", "ssim", "psnr_masked", "ssim_masked"] {
+        assert!(eval[key].as_f64().is_some(), "{key} missing: {eval}");
+    }
+    assert_eq!(eval["views"], 24);
+    // The model is a valid 3DGS file that renders.
+    let renders = tmp.path().join("renders");
+    let out = omniscan(&[
+        "render",
+        model.to_str().unwrap(),
+        "--out",
+        renders.to_str().unwrap(),
+        "--orbit",
+        "2",
+        "--width",
+        "64",
+        "--height",
+        "48",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(renders.join("orbit_001.png").is_file());
+}

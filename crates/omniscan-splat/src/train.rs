@@ -1,0 +1,738 @@
+//! The masked 3DGS trainer (paper, "3DGS Training" and "Supporting
+//! In-Gripper Datasets") on the CPU reference rasterizer.
+//!
+//! Loss per view, with w = 1 − gripper mask (the gripper-agnostic weighting:
+//! every per-pixel term is zero on gripper pixels and means are taken over
+//! the remaining pixels):
+//!   L = (1 − λ)·Σw|Ĉ − Î|/Σw + λ·(1 − SSIM_w(Ĉ, Î)) + β·Σw|A − M|/Σw,
+//! where Ĉ is the render composited over a random background colour, Î the
+//! photo with its non-object pixels replaced by that same colour (so the
+//! model cannot use the background), A the rendered accumulation and M the
+//! object mask (the paper's object opacity loss). λ = 0.2.
+//!
+//! Optimiser: Adam per parameter group with gsplat's learning rates (means
+//! scaled by the scene extent and decayed to 1% over the run). Densification
+//! follows gsplat's default strategy: the mean screen-space gradient picks
+//! splats to clone (small) or split (large), transparent splats are pruned,
+//! opacities are reset periodically, with a hard cap on the count. The SH
+//! degree grows by one every `sh_interval` steps. Initialisation without a
+//! point cloud: points sampled in the space the cameras see, kept where every
+//! view's object (or gripper) mask agrees (a visual hull).
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use crate::backward::backward;
+use crate::metrics::{ImageView, psnr, weighted_ssim_and_gradient};
+use crate::raster::{Camera, Colors, Gaussians, Mode, Settings, project, rasterize};
+use crate::sh::{C0, coefficients};
+use crate::{SplatError, Splats};
+
+/// One training image with its masks.
+#[derive(Debug, Clone)]
+pub struct View {
+    pub camera: Camera<f32>,
+    pub image: Vec<[f32; 3]>,
+    /// 1 on the object, 0 elsewhere.
+    pub object: Vec<f32>,
+    /// 1 on the gripper (excluded from every loss term), 0 elsewhere.
+    pub gripper: Vec<f32>,
+    /// Sensor depth along the optical axis, metres, 0 where unknown; empty if the capture has none.
+    pub depth: Vec<f32>,
+}
+
+/// Training settings.
+#[derive(Debug, Clone, Copy)]
+pub struct TrainConfig {
+    pub steps: usize,
+    pub seed: u64,
+    pub max_sh_degree: usize,
+    pub sh_interval: usize,
+    pub lambda_ssim: f32,
+    pub lambda_opacity: f32,
+    pub densify_from: usize,
+    pub densify_until: usize,
+    pub densify_every: usize,
+    pub grad_threshold: f32,
+    pub reset_every: usize,
+    pub max_splats: usize,
+    pub initial_points: usize,
+}
+
+impl TrainConfig {
+    pub fn with_steps(steps: usize) -> TrainConfig {
+        TrainConfig {
+            steps,
+            seed: 0,
+            max_sh_degree: 3,
+            sh_interval: 1000,
+            lambda_ssim: 0.2,
+            lambda_opacity: 1.0,
+            densify_from: 300.min(steps / 4),
+            densify_until: steps / 2,
+            densify_every: 100,
+            grad_threshold: 0.0002,
+            reset_every: 3000,
+            max_splats: 200_000,
+            initial_points: 5000,
+        }
+    }
+}
+
+/// Adam over a flat parameter array.
+struct Adam {
+    m: Vec<f32>,
+    v: Vec<f32>,
+}
+
+impl Adam {
+    fn new(n: usize) -> Adam {
+        Adam {
+            m: vec![0.0; n],
+            v: vec![0.0; n],
+        }
+    }
+    fn step(&mut self, params: &mut [f32], grads: &[f32], lr: f32, t: i32) {
+        self.step_with(params, grads, |_| lr, t);
+    }
+    /// A step with a learning rate per element.
+    fn step_with(&mut self, params: &mut [f32], grads: &[f32], lr: impl Fn(usize) -> f32, t: i32) {
+        let (b1, b2, eps) = (0.9f32, 0.999f32, 1e-15f32);
+        let c1 = 1.0 - b1.powi(t);
+        let c2 = 1.0 - b2.powi(t);
+        for i in 0..params.len() {
+            self.m[i] = b1 * self.m[i] + (1.0 - b1) * grads[i];
+            self.v[i] = b2 * self.v[i] + (1.0 - b2) * grads[i] * grads[i];
+            params[i] -= lr(i) * (self.m[i] / c1) / ((self.v[i] / c2).sqrt() + eps);
+        }
+    }
+    /// Keeps the moments of the kept entries (`stride` values per splat) and
+    /// zeroes those of `added` new splats.
+    fn reindex(&mut self, keep: &[usize], stride: usize, added: usize) {
+        let pick = |a: &Vec<f32>| -> Vec<f32> {
+            let mut out: Vec<f32> = keep
+                .iter()
+                .flat_map(|&i| a[i * stride..(i + 1) * stride].iter().copied())
+                .collect();
+            out.extend(std::iter::repeat_n(0.0, added * stride));
+            out
+        };
+        self.m = pick(&self.m);
+        self.v = pick(&self.v);
+    }
+}
+
+fn flat3(v: &[[f32; 3]]) -> Vec<f32> {
+    v.iter().flatten().copied().collect()
+}
+
+/// The visual-hull initialisation described in the module docs.
+pub fn initial_splats(
+    views: &[View],
+    count: usize,
+    max_sh_degree: usize,
+    seed: u64,
+) -> Result<Splats, SplatError> {
+    if views.is_empty() {
+        return Err(SplatError::Invalid("no training views".into()));
+    }
+    // The object is near the gripper frame's origin; its size bounds the search.
+    let mut radius = 0.0f32;
+    for v in views {
+        let c = v.camera.viewmat;
+        // Camera centre −Rᵀt.
+        let centre =
+            [0, 1, 2].map(|j| -(c[0][j] * c[0][3] + c[1][j] * c[1][3] + c[2][j] * c[2][3]));
+        radius = radius
+            .max((centre[0] * centre[0] + centre[1] * centre[1] + centre[2] * centre[2]).sqrt());
+    }
+    let half = 0.35 * radius;
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let project_point = |cam: &Camera<f32>, p: [f32; 3]| -> Option<(usize, usize)> {
+        let v = cam.viewmat;
+        let pc = [0, 1, 2].map(|r| v[r][0] * p[0] + v[r][1] * p[1] + v[r][2] * p[2] + v[r][3]);
+        if pc[2] <= cam.near {
+            return None;
+        }
+        let (u, w) = (
+            cam.fx * pc[0] / pc[2] + cam.cx,
+            cam.fy * pc[1] / pc[2] + cam.cy,
+        );
+        (u >= 0.0 && w >= 0.0 && u < cam.width as f32 && w < cam.height as f32)
+            .then_some((u as usize, w as usize))
+    };
+    let mut points = Vec::new();
+    let mut colours = Vec::new();
+    let mut tries = 0;
+    while points.len() < count && tries < count * 400 {
+        tries += 1;
+        let p = [0; 3].map(|_| (rng.random::<f32>() * 2.0 - 1.0) * half);
+        let mut inside = true;
+        let mut seen = 0;
+        let mut in_image = 0;
+        let mut colour = [0.0f32; 3];
+        for v in views {
+            if let Some((u, w)) = project_point(&v.camera, p) {
+                let i = w * v.camera.width as usize + u;
+                in_image += 1;
+                if v.object[i] < 0.5 && v.gripper[i] < 0.5 {
+                    inside = false;
+                    break;
+                }
+                // Depth carves free space: a point clearly in front of the
+                // observed surface is empty (the gripper's volume would
+                // otherwise survive the masks, which always cover it).
+                if !v.depth.is_empty() && v.depth[i] > 0.0 {
+                    let vm = v.camera.viewmat;
+                    let z = vm[2][0] * p[0] + vm[2][1] * p[1] + vm[2][2] * p[2] + vm[2][3];
+                    if z < v.depth[i] * 0.97 {
+                        inside = false;
+                        break;
+                    }
+                }
+                if v.object[i] >= 0.5 {
+                    seen += 1;
+                    for c in 0..3 {
+                        colour[c] += v.image[i][c];
+                    }
+                }
+            }
+        }
+        // Keep points that most views see as object, not as gripper.
+        if inside && seen > 0 && 2 * seen >= in_image {
+            points.push(p);
+            colours.push(colour.map(|c| c / seen as f32));
+        }
+    }
+    if points.len() < 10 {
+        return Err(SplatError::Invalid("the object masks agree on too little space to start from: check the masks and camera poses".into()));
+    }
+    // Scale each splat to the distance to its nearest neighbours.
+    let tree: kiddo::ImmutableKdTree<f32, 3> =
+        kiddo::ImmutableKdTree::new_from_slice(&points).expect("points");
+    let k = coefficients(max_sh_degree);
+    let mut s = Splats {
+        sh_degree: max_sh_degree,
+        ..Default::default()
+    };
+    for (p, c) in points.iter().zip(&colours) {
+        let r = tree
+            .query(p)
+            .nearest_n::<kiddo::SquaredEuclidean<f32>>(std::num::NonZero::new(4).unwrap())
+            .execute();
+        let d = (r.iter().skip(1).map(|x| x.distance.sqrt()).sum::<f32>() / 3.0).max(1e-5);
+        s.means.push(*p);
+        s.log_scales.push([d.ln(); 3]);
+        s.quats.push([1.0, 0.0, 0.0, 0.0]);
+        s.opacity_logits.push((0.1f32 / 0.9).ln());
+        s.sh.push(c.map(|v| (v - 0.5) / C0 as f32));
+        s.sh.extend(std::iter::repeat_n([0.0; 3], k - 1));
+    }
+    Ok(s)
+}
+
+/// Activated parameters with only the first `degree` SH bands in use.
+fn gaussians_at_degree(s: &Splats, degree: usize) -> Gaussians<f32> {
+    let mut g = s.gaussians::<f32>();
+    let k = s.sh_coefficients();
+    let ka = coefficients(degree);
+    g.colors = Colors::Sh {
+        degree,
+        coeffs: (0..s.len())
+            .flat_map(|i| s.sh[i * k..i * k + ka].iter().copied())
+            .collect(),
+    };
+    g
+}
+
+/// Trains `splats` on `views`; `progress(step, loss, psnr)` is called every step.
+pub fn train(
+    views: &[View],
+    mut s: Splats,
+    config: &TrainConfig,
+    progress: &mut dyn FnMut(usize, f32, f64),
+) -> Result<Splats, SplatError> {
+    if views.is_empty() {
+        return Err(SplatError::Invalid("no training views".into()));
+    }
+    s.validate()?;
+    let mut rng = ChaCha8Rng::seed_from_u64(config.seed ^ 0x7a11);
+    // Scene extent: the splats' spread around their centre.
+    let extent = {
+        let n = s.len().max(1) as f32;
+        let c = [0, 1, 2].map(|a| s.means.iter().map(|m| m[a]).sum::<f32>() / n);
+        s.means
+            .iter()
+            .map(|m| ((m[0] - c[0]).powi(2) + (m[1] - c[1]).powi(2) + (m[2] - c[2]).powi(2)).sqrt())
+            .fold(0.0, f32::max)
+            .max(1e-3)
+    };
+    let k = s.sh_coefficients();
+    let mut adam = [
+        Adam::new(s.len() * 3),
+        Adam::new(s.len() * 3),
+        Adam::new(s.len() * 4),
+        Adam::new(s.len()),
+        Adam::new(s.len() * k * 3),
+    ];
+    let mut grad2d_sum = vec![0.0f32; s.len()];
+    let mut grad2d_count = vec![0u32; s.len()];
+    let mut order: Vec<usize> = Vec::new();
+    for step in 1..=config.steps {
+        if order.is_empty() {
+            order = (0..views.len()).collect();
+            for i in (1..order.len()).rev() {
+                order.swap(i, rng.random_range(0..=i));
+            }
+        }
+        let view = &views[order.pop().unwrap()];
+        let degree = (step / config.sh_interval.max(1))
+            .min(config.max_sh_degree)
+            .min(s.sh_degree);
+        let g = gaussians_at_degree(&s, degree);
+        let background = [
+            rng.random::<f32>(),
+            rng.random::<f32>(),
+            rng.random::<f32>(),
+        ];
+        let settings = Settings {
+            eps2d: 0.3,
+            mode: if s.antialiased {
+                Mode::Antialiased
+            } else {
+                Mode::Classic
+            },
+            background,
+        };
+        let p = project(&g, &view.camera, &settings);
+        let r = rasterize(&p, view.camera.width, view.camera.height, background);
+        let (w, h) = (view.camera.width as usize, view.camera.height as usize);
+        let n_px = w * h;
+        let target: Vec<[f32; 3]> = (0..n_px)
+            .map(|i| {
+                let m = view.object[i];
+                [0, 1, 2].map(|c| view.image[i][c] * m + background[c] * (1.0 - m))
+            })
+            .collect();
+        let weight: Vec<f32> = view.gripper.iter().map(|g| 1.0 - g).collect();
+        let wsum = weight.iter().sum::<f32>().max(1.0);
+        let lam = config.lambda_ssim;
+        let mut d_rgb = vec![[0.0f32; 3]; n_px];
+        let mut d_alpha = vec![0.0f32; n_px];
+        let mut l1 = 0.0f32;
+        let mut lo = 0.0f32;
+        for i in 0..n_px {
+            for c in 0..3 {
+                let d = r.rgb[i][c] - target[i][c];
+                l1 += weight[i] * d.abs() / (3.0 * wsum);
+                d_rgb[i][c] = (1.0 - lam) * weight[i] * d.signum() / (3.0 * wsum);
+            }
+            let da = r.alpha[i] - view.object[i];
+            lo += weight[i] * da.abs() / wsum;
+            d_alpha[i] = config.lambda_opacity * weight[i] * da.signum() / wsum;
+        }
+        let ssim_weights: Vec<f64> = weight
+            .iter()
+            .map(|&x| x as f64 / (3.0 * wsum as f64))
+            .collect();
+        let (ssim, d_ssim) = weighted_ssim_and_gradient(
+            &ImageView {
+                width: w,
+                height: h,
+                pixels: &r.rgb,
+            },
+            &ImageView {
+                width: w,
+                height: h,
+                pixels: &target,
+            },
+            &ssim_weights,
+        );
+        for i in 0..n_px {
+            for c in 0..3 {
+                d_rgb[i][c] -= lam * d_ssim[i][c];
+            }
+        }
+        let loss = (1.0 - lam) * l1 + lam * (1.0 - ssim as f32) + config.lambda_opacity * lo;
+        let grads = backward(&g, &view.camera, &settings, &p, &d_rgb, &d_alpha);
+        // Screen-space gradient statistics for densification (gsplat scales by half the image size).
+        for i in 0..s.len() {
+            if p.visible(i) {
+                let gx = grads.means2d[i][0] * w as f32 * 0.5;
+                let gy = grads.means2d[i][1] * h as f32 * 0.5;
+                grad2d_sum[i] += (gx * gx + gy * gy).sqrt();
+                grad2d_count[i] += 1;
+            }
+        }
+        // Adam steps.
+        let t = step as i32;
+        let progress_fraction = step as f32 / config.steps as f32;
+        let means_lr = 1.6e-4 * extent * 0.01f32.powf(progress_fraction);
+        let mut means = flat3(&s.means);
+        adam[0].step(&mut means, &flat3(&grads.means), means_lr, t);
+        let mut log_scales = flat3(&s.log_scales);
+        adam[1].step(&mut log_scales, &flat3(&grads.log_scales(&g)), 5e-3, t);
+        let mut quats: Vec<f32> = s.quats.iter().flatten().copied().collect();
+        adam[2].step(
+            &mut quats,
+            &grads.quats.iter().flatten().copied().collect::<Vec<_>>(),
+            1e-3,
+            t,
+        );
+        adam[3].step(&mut s.opacity_logits, &grads.opacity_logits(&g), 5e-2, t);
+        let ka = coefficients(degree);
+        let mut sh_flat = flat3(&s.sh);
+        let mut sh_grad = vec![0.0f32; sh_flat.len()];
+        for i in 0..s.len() {
+            for kk in 0..ka {
+                for c in 0..3 {
+                    sh_grad[(i * k + kk) * 3 + c] = grads.colors[i * ka + kk][c];
+                }
+            }
+        }
+        // DC and higher bands use different rates (gsplat: 2.5e-3 and 2.5e-3/20).
+        adam[4].step_with(
+            &mut sh_flat,
+            &sh_grad,
+            |j| {
+                if (j / 3) % k == 0 {
+                    2.5e-3
+                } else {
+                    2.5e-3 / 20.0
+                }
+            },
+            t,
+        );
+        for i in 0..s.len() {
+            s.means[i] = [means[i * 3], means[i * 3 + 1], means[i * 3 + 2]];
+            s.log_scales[i] = [
+                log_scales[i * 3],
+                log_scales[i * 3 + 1],
+                log_scales[i * 3 + 2],
+            ];
+            s.quats[i] = [
+                quats[i * 4],
+                quats[i * 4 + 1],
+                quats[i * 4 + 2],
+                quats[i * 4 + 3],
+            ];
+        }
+        for (j, v) in sh_flat.chunks_exact(3).enumerate() {
+            s.sh[j] = [v[0], v[1], v[2]];
+        }
+        let image_psnr = psnr(
+            &ImageView {
+                width: w,
+                height: h,
+                pixels: &r.rgb,
+            },
+            &ImageView {
+                width: w,
+                height: h,
+                pixels: &target,
+            },
+            Some(&view.gripper.iter().map(|&x| x < 0.5).collect::<Vec<_>>()),
+        )
+        .unwrap_or(0.0);
+        progress(step, loss, image_psnr);
+
+        // Densify and prune.
+        let in_window = step >= config.densify_from && step <= config.densify_until;
+        if in_window && step % config.densify_every == 0 {
+            densify(
+                &mut s,
+                &mut adam,
+                &grad2d_sum,
+                &grad2d_count,
+                config,
+                extent,
+                &mut rng,
+            );
+            grad2d_sum = vec![0.0; s.len()];
+            grad2d_count = vec![0; s.len()];
+        }
+        if config.reset_every > 0 && step % config.reset_every == 0 && step < config.densify_until {
+            let cap = (0.01f32 / 0.99).ln();
+            for o in &mut s.opacity_logits {
+                *o = o.min(cap);
+            }
+        }
+    }
+    s.validate()?;
+    Ok(s)
+}
+
+fn densify(
+    s: &mut Splats,
+    adam: &mut [Adam; 5],
+    sum: &[f32],
+    count: &[u32],
+    config: &TrainConfig,
+    extent: f32,
+    rng: &mut ChaCha8Rng,
+) {
+    let n = s.len();
+    let k = s.sh_coefficients();
+    let sigmoid = |x: f32| 1.0 / (1.0 + (-x).exp());
+    let mut keep: Vec<usize> = Vec::with_capacity(n);
+    let mut clones: Vec<usize> = Vec::new();
+    let mut splits: Vec<usize> = Vec::new();
+    for i in 0..n {
+        if sigmoid(s.opacity_logits[i]) < 0.005 {
+            continue;
+        }
+        keep.push(i);
+        let avg = if count[i] > 0 {
+            sum[i] / count[i] as f32
+        } else {
+            0.0
+        };
+        if avg > config.grad_threshold {
+            let largest = s.log_scales[i]
+                .iter()
+                .cloned()
+                .fold(f32::NEG_INFINITY, f32::max)
+                .exp();
+            if largest <= 0.01 * extent {
+                clones.push(i)
+            } else {
+                splits.push(i)
+            }
+        }
+    }
+    let room = config.max_splats.saturating_sub(keep.len());
+    clones.truncate(room);
+    splits.truncate(room.saturating_sub(clones.len()));
+    let mut added: Vec<(usize, [f32; 3], Option<[f32; 3]>)> =
+        clones.iter().map(|&i| (i, s.means[i], None)).collect();
+    for &i in &splits {
+        // Two samples from the Gaussian, both 1.6x smaller: the original becomes one of them.
+        let scales = s.log_scales[i].map(|v| v.exp());
+        let rot = crate::raster::quat_to_rotmat(s.quats[i]);
+        let mut samples = [[0.0f32; 3]; 2];
+        for sample in &mut samples {
+            let z = [0; 3].map(|_| {
+                let (u1, u2): (f32, f32) = (rng.random::<f32>().max(1e-7), rng.random());
+                (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
+            });
+            for a in 0..3 {
+                sample[a] =
+                    s.means[i][a] + (0..3).map(|b| rot[a][b] * scales[b] * z[b]).sum::<f32>();
+            }
+        }
+        let smaller = s.log_scales[i].map(|v| v - 1.6f32.ln());
+        s.means[i] = samples[0];
+        s.log_scales[i] = smaller;
+        added.push((i, samples[1], Some(smaller)));
+    }
+    let mut out = Splats {
+        sh_degree: s.sh_degree,
+        antialiased: s.antialiased,
+        ..Default::default()
+    };
+    for &i in &keep {
+        out.means.push(s.means[i]);
+        out.log_scales.push(s.log_scales[i]);
+        out.quats.push(s.quats[i]);
+        out.opacity_logits.push(s.opacity_logits[i]);
+        out.sh.extend_from_slice(&s.sh[i * k..(i + 1) * k]);
+    }
+    for &(i, mean, scale) in &added {
+        out.means.push(mean);
+        out.log_scales.push(scale.unwrap_or(s.log_scales[i]));
+        out.quats.push(s.quats[i]);
+        out.opacity_logits.push(s.opacity_logits[i]);
+        out.sh.extend_from_slice(&s.sh[i * k..(i + 1) * k]);
+    }
+    let strides = [3, 3, 4, 1, k * 3];
+    for (a, stride) in adam.iter_mut().zip(strides) {
+        a.reindex(&keep, stride, added.len());
+    }
+    *s = out;
+}
+
+/// Training views from a capture: images, object masks and gripper masks
+/// (the frames' own masks, else the simulator's ground truth), cameras in the
+/// reconstruction frame of `set`, images shrunk by `downscale` (box filter).
+pub fn views_from_capture(
+    capture: &omniscan_core::Capture,
+    set: omniscan_core::poses::ViewSet,
+    downscale: u32,
+) -> Result<Vec<View>, SplatError> {
+    use omniscan_core::image_io::{read_mask, read_rgb};
+    let f = downscale.max(1);
+    let k = capture.intrinsics();
+    let (w, h) = (k.width / f, k.height / f);
+    if w < 8 || h < 8 {
+        return Err(SplatError::Invalid(format!(
+            "downscale {f} leaves a {w}x{h} image"
+        )));
+    }
+    let views = omniscan_core::poses::camera_views(capture, set);
+    let mut out = Vec::with_capacity(views.len());
+    for v in views {
+        let frame = &capture.file.frames[v.frame_index];
+        let gt = frame.gt.as_ref();
+        let object_path = frame
+            .object_mask_path
+            .clone()
+            .or_else(|| gt.and_then(|g| g.object_mask_path.clone()));
+        let gripper_path = frame
+            .gripper_mask_path
+            .clone()
+            .or_else(|| gt.and_then(|g| g.gripper_mask_path.clone()));
+        let (Some(object_path), Some(gripper_path)) = (object_path, gripper_path) else {
+            return Err(SplatError::Invalid(format!(
+                "{}: no object or gripper mask; run `omniscan mask` first",
+                frame.file_path
+            )));
+        };
+        let rgb = read_rgb(&capture.resolve(&frame.file_path))?;
+        let depth_map = match &frame.depth_path {
+            Some(d) => Some(omniscan_core::image_io::read_depth(&capture.resolve(d))?),
+            None => None,
+        };
+        let object = read_mask(&capture.resolve(&object_path))?;
+        let gripper = read_mask(&capture.resolve(&gripper_path))?;
+        for (name, (mw, mh)) in [
+            ("object mask", (object.width, object.height)),
+            ("gripper mask", (gripper.width, gripper.height)),
+        ] {
+            if (mw, mh) != (rgb.width, rgb.height) {
+                return Err(SplatError::Invalid(format!(
+                    "{}: {name} is {mw}x{mh}, the image {}x{}",
+                    frame.file_path, rgb.width, rgb.height
+                )));
+            }
+        }
+        let full_w = rgb.width as usize;
+        let mut image = vec![[0.0f32; 3]; (w * h) as usize];
+        // Depth: the nearest valid sample of each block.
+        let mut depth = match &depth_map {
+            Some(_) => vec![0.0f32; (w * h) as usize],
+            None => Vec::new(),
+        };
+        let mut obj = vec![0.0f32; (w * h) as usize];
+        let mut grip = vec![0.0f32; (w * h) as usize];
+        let area = (f * f) as f32;
+        for y in 0..h as usize {
+            for x in 0..w as usize {
+                let o = y * w as usize + x;
+                for dy in 0..f as usize {
+                    for dx in 0..f as usize {
+                        let i = (y * f as usize + dy) * full_w + x * f as usize + dx;
+                        for c in 0..3 {
+                            image[o][c] += rgb.data[i * 3 + c] as f32 / 255.0 / area;
+                        }
+                        obj[o] += (object.data[i] >= 128) as u8 as f32 / area;
+                        if let Some(d) = &depth_map {
+                            let z = d.data[i] as f32 * 0.001;
+                            if z > 0.0 && (depth[o] == 0.0 || z < depth[o]) {
+                                depth[o] = z;
+                            }
+                        }
+                        grip[o] += (gripper.data[i] >= 128) as u8 as f32 / area;
+                    }
+                }
+                // A pixel partly covered by the gripper is left out of the loss.
+                grip[o] = if grip[o] > 0.0 { 1.0 } else { 0.0 };
+            }
+        }
+        let m = v.camera_to_object.inverse().to_homogeneous();
+        let mut viewmat = [[0.0f32; 4]; 4];
+        for r in 0..4 {
+            for c in 0..4 {
+                viewmat[r][c] = m[(r, c)] as f32;
+            }
+        }
+        let camera = Camera {
+            viewmat,
+            fx: (k.fx / f as f64) as f32,
+            fy: (k.fy / f as f64) as f32,
+            cx: (k.cx / f as f64) as f32,
+            cy: (k.cy / f as f64) as f32,
+            width: w,
+            height: h,
+            near: 0.01,
+            far: 100.0,
+        };
+        out.push(View {
+            camera,
+            image,
+            object: obj,
+            gripper: grip,
+            depth,
+        });
+    }
+    Ok(out)
+}
+
+/// PSNR and SSIM over whole images (on black) and masked by object ∩
+/// accumulation minus gripper (the paper's evaluation), averaged over views.
+pub fn evaluate(model: &Splats, views: &[View]) -> serde_json::Value {
+    use crate::metrics::ssim;
+    let g = model.gaussians::<f32>();
+    let settings = Settings {
+        eps2d: 0.3,
+        mode: if model.antialiased {
+            Mode::Antialiased
+        } else {
+            Mode::Classic
+        },
+        background: [0.0; 3],
+    };
+    let (mut p_all, mut s_all, mut p_mask, mut s_mask) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for v in views {
+        let p = project(&g, &v.camera, &settings);
+        let r = rasterize(&p, v.camera.width, v.camera.height, [0.0; 3]);
+        let (w, h) = (v.camera.width as usize, v.camera.height as usize);
+        let target: Vec<[f32; 3]> = v
+            .image
+            .iter()
+            .zip(&v.object)
+            .map(|(c, m)| c.map(|x| x * m))
+            .collect();
+        let a = ImageView {
+            width: w,
+            height: h,
+            pixels: &r.rgb,
+        };
+        let b = ImageView {
+            width: w,
+            height: h,
+            pixels: &target,
+        };
+        let mask: Vec<bool> = (0..w * h)
+            .map(|i| v.object[i] >= 0.5 && r.alpha[i] >= 0.5 && v.gripper[i] < 0.5)
+            .collect();
+        if let Some(x) = psnr(&a, &b, None) {
+            p_all.push(x);
+        }
+        if let Some(x) = ssim(&a, &b, None) {
+            s_all.push(x);
+        }
+        if let Some(x) = psnr(&a, &b, Some(&mask)) {
+            p_mask.push(x);
+        }
+        if let Some(x) = ssim(&a, &b, Some(&mask)) {
+            s_mask.push(x);
+        }
+    }
+    let mean = |v: &Vec<f64>| {
+        if v.is_empty() {
+            None
+        } else {
+            Some(v.iter().sum::<f64>() / v.len() as f64)
+        }
+    };
+    serde_json::json!({
+        "views": views.len(),
+        "psnr": mean(&p_all),
+        "ssim": mean(&s_all),
+        "psnr_masked": mean(&p_mask),
+        "ssim_masked": mean(&s_mask),
+        "lpips": serde_json::Value::Null,
+        "lpips_note": "LPIPS not computed: no network weights were given",
+    })
+}
