@@ -736,3 +736,119 @@ pub fn evaluate(model: &Splats, views: &[View]) -> serde_json::Value {
         "lpips_note": "LPIPS not computed: no network weights were given",
     })
 }
+
+/// Training views from a calibrated photo set: a `cameras.json` with
+/// `frames` of `file_path`, `mask_path` (object mask), `fl_x`, `fl_y`, `cx`,
+/// `cy`, `w`, `h` (pixels) and `camera_to_world_opencv` (4x4). An optional
+/// `scale_mat` (NeuS convention: maps the unit sphere onto the object) is
+/// undone so the object sits in the unit sphere. No gripper, no depth.
+pub fn views_from_cameras_json(
+    path: &std::path::Path,
+    downscale: u32,
+) -> Result<Vec<View>, SplatError> {
+    use omniscan_core::image_io::{read_mask, read_rgb};
+    let text = std::fs::read_to_string(path).map_err(|e| SplatError::file(path, e.to_string()))?;
+    let d: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| SplatError::file(path, e.to_string()))?;
+    let dir = path.parent().unwrap_or(std::path::Path::new("."));
+    let to_matrix = |v: &serde_json::Value| -> Option<nalgebra::Matrix4<f64>> {
+        let rows: [[f64; 4]; 4] = serde_json::from_value(v.clone()).ok()?;
+        Some(nalgebra::Matrix4::from_fn(|r, c| rows[r][c]))
+    };
+    let normalise = match d.get("scale_mat") {
+        Some(m) => to_matrix(m)
+            .and_then(|m| m.try_inverse())
+            .ok_or_else(|| SplatError::file(path, "scale_mat is not an invertible 4x4 matrix"))?,
+        None => nalgebra::Matrix4::identity(),
+    };
+    let frames = d["frames"]
+        .as_array()
+        .ok_or_else(|| SplatError::file(path, "no `frames` array"))?;
+    let f = downscale.max(1);
+    let mut views = Vec::new();
+    for (i, fr) in frames.iter().enumerate() {
+        let bad = |what: &str| SplatError::file(path, format!("frames[{i}]: {what}"));
+        let num = |k: &str| {
+            fr[k]
+                .as_f64()
+                .ok_or_else(|| bad(&format!("missing number `{k}`")))
+        };
+        let c2w = to_matrix(&fr["camera_to_world_opencv"])
+            .ok_or_else(|| bad("camera_to_world_opencv must be a 4x4 matrix"))?;
+        // Normalised world: x' = S⁻¹x; the camera keeps its rotation up to the uniform scale.
+        let c2w = normalise * c2w;
+        let s = c2w.fixed_view::<3, 1>(0, 0).norm();
+        let mut rot = c2w.fixed_view::<3, 3>(0, 0).into_owned() / s;
+        // Re-orthonormalise.
+        let svd = rot.svd(true, true);
+        rot = svd.u.unwrap() * svd.v_t.unwrap();
+        let centre = c2w.fixed_view::<3, 1>(0, 3).into_owned();
+        let rt = rot.transpose();
+        let t = -(rt * centre);
+        let mut viewmat = [[0.0f32; 4]; 4];
+        for r in 0..3 {
+            for c in 0..3 {
+                viewmat[r][c] = rt[(r, c)] as f32;
+            }
+            viewmat[r][3] = t[r] as f32;
+        }
+        viewmat[3][3] = 1.0;
+        let rgb = read_rgb(
+            &dir.join(
+                fr["file_path"]
+                    .as_str()
+                    .ok_or_else(|| bad("missing file_path"))?,
+            ),
+        )?;
+        let mask = read_mask(
+            &dir.join(
+                fr["mask_path"]
+                    .as_str()
+                    .ok_or_else(|| bad("missing mask_path"))?,
+            ),
+        )?;
+        if (mask.width, mask.height) != (rgb.width, rgb.height) {
+            return Err(bad("mask and image sizes differ"));
+        }
+        let (w, h) = (rgb.width / f, rgb.height / f);
+        let area = (f * f) as f32;
+        let mut image = vec![[0.0f32; 3]; (w * h) as usize];
+        let mut object = vec![0.0f32; (w * h) as usize];
+        for y in 0..h as usize {
+            for x in 0..w as usize {
+                let o = y * w as usize + x;
+                for dy in 0..f as usize {
+                    for dx in 0..f as usize {
+                        let p = (y * f as usize + dy) * rgb.width as usize + x * f as usize + dx;
+                        for c in 0..3 {
+                            image[o][c] += rgb.data[p * 3 + c] as f32 / 255.0 / area;
+                        }
+                        object[o] += (mask.data[p] >= 128) as u8 as f32 / area;
+                    }
+                }
+            }
+        }
+        let camera = Camera {
+            viewmat,
+            fx: (num("fl_x")? / f as f64) as f32,
+            fy: (num("fl_y")? / f as f64) as f32,
+            cx: (num("cx")? / f as f64) as f32,
+            cy: (num("cy")? / f as f64) as f32,
+            width: w,
+            height: h,
+            near: 0.01,
+            far: 100.0,
+        };
+        views.push(View {
+            camera,
+            image,
+            object,
+            gripper: vec![0.0; (w * h) as usize],
+            depth: Vec::new(),
+        });
+    }
+    if views.is_empty() {
+        return Err(SplatError::file(path, "no frames"));
+    }
+    Ok(views)
+}

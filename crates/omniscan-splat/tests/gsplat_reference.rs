@@ -359,3 +359,21 @@ fn flat_inner(v: &Value) -> Vec<f64> {
         other => vec![other.as_f64().unwrap()],
     }
 }
+
+#[test]
+#[ignore = "needs ../shared"]
+fn dtu_photo_set_loads_with_masks_and_a_consistent_visual_hull() {
+    let dir = std::env::var_os("OMNISCAN_SHARED")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared"));
+    let views = omniscan_splat::train::views_from_cameras_json(
+        &dir.join("data/dtu_scan37/cameras.json"),
+        8,
+    )
+    .unwrap();
+    assert_eq!(views.len(), 49);
+    assert!(views.iter().all(|v| v.object.iter().any(|&m| m > 0.5)));
+    // The cameras and masks agree on a common object: the visual hull is not empty.
+    let init = omniscan_splat::train::initial_splats(&views, 500, 0, 0).unwrap();
+    assert!(init.len() >= 100, "{}", init.len());
+}

@@ -21,7 +21,7 @@ pub enum ArmSet {
 
 #[derive(clap::Args)]
 pub struct TrainArgs {
-    /// The capture directory.
+    /// The capture directory, or a calibrated photo set's cameras.json (file_path, mask_path, fl_x, fl_y, cx, cy, camera_to_world_opencv per frame).
     pub capture: PathBuf,
     #[arg(long, value_enum, default_value = "left")]
     pub arm: ArmSet,
@@ -48,16 +48,22 @@ pub struct TrainArgs {
 }
 
 pub fn run(args: TrainArgs) -> Result<()> {
-    let capture = Capture::load(&args.capture)?;
-    let set = match args.arm {
-        ArmSet::Left => ViewSet::Arm(Arm::Left),
-        ArmSet::Right => ViewSet::Arm(Arm::Right),
-        ArmSet::Both => ViewSet::merged_from_handover(&capture),
-    };
     if args.sh_degree > 3 {
         bail!("--sh-degree must be 0-3");
     }
-    let all = views_from_capture(&capture, set, args.downscale)?;
+    let all = if args.capture.extension().is_some_and(|e| e == "json")
+        && !args.capture.ends_with("capture.json")
+    {
+        omniscan_splat::train::views_from_cameras_json(&args.capture, args.downscale)?
+    } else {
+        let capture = Capture::load(&args.capture)?;
+        let set = match args.arm {
+            ArmSet::Left => ViewSet::Arm(Arm::Left),
+            ArmSet::Right => ViewSet::Arm(Arm::Right),
+            ArmSet::Both => ViewSet::merged_from_handover(&capture),
+        };
+        views_from_capture(&capture, set, args.downscale)?
+    };
     let (mut train_views, mut test_views) = (Vec::new(), Vec::new());
     for (i, v) in all.into_iter().enumerate() {
         if args.hold_out_every > 0 && i % args.hold_out_every == args.hold_out_every - 1 {
