@@ -19,7 +19,8 @@ use rayon::prelude::*;
 
 use crate::Real;
 use crate::raster::{
-    Camera, Colors, Gaussians, Mode, Projected, Settings, covariance, quat_to_rotmat, tile_lists,
+    Camera, Colors, Gaussians, Mode, Projected, Settings, ViewGeometry, covariance, quat_to_rotmat,
+    tile_lists,
 };
 use crate::sh;
 
@@ -214,81 +215,6 @@ fn mat3_t<F: Real>(a: &[[F; 3]; 3]) -> [[F; 3]; 3] {
     o
 }
 
-/// Derivatives of the SH basis with respect to the (unit) direction.
-fn basis_gradient<F: Real>(degree: usize, d: [F; 3]) -> Vec<[F; 3]> {
-    let c = F::c;
-    let [x, y, z] = d;
-    let (c1, z0) = (c(0.488_602_511_902_919_9), F::zero());
-    let mut out = vec![[z0; 3]];
-    if degree >= 1 {
-        out.extend([[z0, -c1, z0], [z0, z0, c1], [-c1, z0, z0]]);
-    }
-    if degree >= 2 {
-        let k = [
-            1.092_548_430_592_079_2,
-            -1.092_548_430_592_079_2,
-            0.315_391_565_252_520_05,
-            -1.092_548_430_592_079_2,
-            0.546_274_215_296_039_6,
-        ]
-        .map(c);
-        out.extend([
-            [k[0] * y, k[0] * x, z0],
-            [z0, k[1] * z, k[1] * y],
-            [c(-2.0) * k[2] * x, c(-2.0) * k[2] * y, c(4.0) * k[2] * z],
-            [k[3] * z, z0, k[3] * x],
-            [c(2.0) * k[4] * x, c(-2.0) * k[4] * y, z0],
-        ]);
-    }
-    if degree >= 3 {
-        let k = [
-            -0.590_043_589_926_643_5,
-            2.890_611_442_640_554,
-            -0.457_045_799_464_465_8,
-            0.373_176_332_590_115_4,
-            -0.457_045_799_464_465_8,
-            1.445_305_721_320_277,
-            -0.590_043_589_926_643_5,
-        ]
-        .map(c);
-        let (xx, yy, zz) = (x * x, y * y, z * z);
-        out.extend([
-            [
-                c(6.0) * k[0] * x * y,
-                k[0] * (c(3.0) * xx - c(3.0) * yy),
-                z0,
-            ],
-            [k[1] * y * z, k[1] * x * z, k[1] * x * y],
-            [
-                c(-2.0) * k[2] * x * y,
-                k[2] * (c(4.0) * zz - xx - c(3.0) * yy),
-                c(8.0) * k[2] * y * z,
-            ],
-            [
-                c(-6.0) * k[3] * x * z,
-                c(-6.0) * k[3] * y * z,
-                k[3] * (c(6.0) * zz - c(3.0) * xx - c(3.0) * yy),
-            ],
-            [
-                k[4] * (c(4.0) * zz - c(3.0) * xx - yy),
-                c(-2.0) * k[4] * x * y,
-                c(8.0) * k[4] * x * z,
-            ],
-            [
-                c(2.0) * k[5] * x * z,
-                c(-2.0) * k[5] * y * z,
-                k[5] * (xx - yy),
-            ],
-            [
-                k[6] * (c(3.0) * xx - c(3.0) * yy),
-                c(-6.0) * k[6] * x * y,
-                z0,
-            ],
-        ]);
-    }
-    out
-}
-
 fn project_backward<F: Real>(
     g: &Gaussians<F>,
     camera: &Camera<F>,
@@ -296,23 +222,14 @@ fn project_backward<F: Real>(
     p: &Projected<F>,
     grads: &mut Gradients<F>,
 ) {
-    let v = &camera.viewmat;
-    let rot = [
-        [v[0][0], v[0][1], v[0][2]],
-        [v[1][0], v[1][1], v[1][2]],
-        [v[2][0], v[2][1], v[2][2]],
-    ];
-    let trans = [v[0][3], v[1][3], v[2][3]];
-    let campos =
-        [0, 1, 2].map(|j| -(rot[0][j] * trans[0] + rot[1][j] * trans[1] + rot[2][j] * trans[2]));
-    let (w, h) = (F::c(camera.width as f64), F::c(camera.height as f64));
+    let ViewGeometry {
+        rot,
+        trans,
+        campos,
+        lim_x: (lim_x_neg, lim_x_pos),
+        lim_y: (lim_y_neg, lim_y_pos),
+    } = ViewGeometry::new(camera);
     let (fx, fy) = (camera.fx, camera.fy);
-    let tan_x = F::c(0.5) * w / fx;
-    let tan_y = F::c(0.5) * h / fy;
-    let lim_x_pos = (w - camera.cx) / fx + F::c(0.3) * tan_x;
-    let lim_x_neg = camera.cx / fx + F::c(0.3) * tan_x;
-    let lim_y_pos = (h - camera.cy) / fy + F::c(0.3) * tan_y;
-    let lim_y_neg = camera.cy / fy + F::c(0.3) * tan_y;
     let two = F::c(2.0);
     for i in 0..g.means.len() {
         if !p.visible(i) {
@@ -353,7 +270,7 @@ fn project_backward<F: Real>(
                         grads.colors[i * k + kk][ch] = basis[kk] * d_raw[ch];
                     }
                 }
-                let dbasis = basis_gradient(*degree, dir);
+                let dbasis = sh::basis_gradient(*degree, dir);
                 let mut d_dir = [F::zero(); 3];
                 for kk in 0..k {
                     let s: F = (0..3).map(|ch| coeffs[i * k + kk][ch] * d_raw[ch]).sum();

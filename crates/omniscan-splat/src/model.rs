@@ -77,6 +77,15 @@ impl Splats {
         Ok(())
     }
 
+    /// The footprint filter the model was trained with.
+    pub fn render_mode(&self) -> crate::raster::Mode {
+        if self.antialiased {
+            crate::raster::Mode::Antialiased
+        } else {
+            crate::raster::Mode::Classic
+        }
+    }
+
     /// Activated parameters in float type `F` for the rasterizer.
     pub fn gaussians<F: Real>(&self) -> Gaussians<F> {
         let c = |v: f32| F::c(v as f64);

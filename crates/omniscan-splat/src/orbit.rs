@@ -51,23 +51,18 @@ pub fn orbit_cameras(model: &Splats, count: usize, width: u32, height: u32) -> V
                         elevation.sin(),
                     );
             let camera_to_world = look_at(&eye, &target, &Vector3::z());
-            let v = camera_to_world.inverse().to_homogeneous();
-            let mut viewmat = [[0.0f32; 4]; 4];
-            for (r, row) in viewmat.iter_mut().enumerate() {
-                for (c, x) in row.iter_mut().enumerate() {
-                    *x = v[(r, c)] as f32;
-                }
-            }
-            Camera {
-                viewmat,
-                fx: focal as f32,
-                fy: focal as f32,
-                cx: width as f32 * 0.5,
-                cy: height as f32 * 0.5,
+            let intrinsics = omniscan_core::Intrinsics {
                 width,
                 height,
+                fx: focal,
+                fy: focal,
+                cx: width as f64 * 0.5,
+                cy: height as f64 * 0.5,
+            };
+            Camera {
                 near: (0.01 * distance) as f32,
                 far: (100.0 * distance) as f32,
+                ..Camera::from_pose(&camera_to_world, &intrinsics)
             }
         })
         .collect()

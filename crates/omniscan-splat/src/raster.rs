@@ -48,6 +48,75 @@ pub struct Camera<F> {
     pub far: F,
 }
 
+impl<F: Real> Camera<F> {
+    /// A camera at `camera_to_world` (OpenCV axes) with the given intrinsics.
+    pub fn from_pose(
+        camera_to_world: &omniscan_core::Pose,
+        k: &omniscan_core::Intrinsics,
+    ) -> Camera<F> {
+        let v = camera_to_world.inverse().to_homogeneous();
+        let mut viewmat = [[F::zero(); 4]; 4];
+        for (r, row) in viewmat.iter_mut().enumerate() {
+            for (c, x) in row.iter_mut().enumerate() {
+                *x = F::c(v[(r, c)]);
+            }
+        }
+        Camera {
+            viewmat,
+            fx: F::c(k.fx),
+            fy: F::c(k.fy),
+            cx: F::c(k.cx),
+            cy: F::c(k.cy),
+            width: k.width,
+            height: k.height,
+            near: F::c(0.01),
+            far: F::c(100.0),
+        }
+    }
+}
+
+/// What projection needs of a camera: the view rotation and translation,
+/// the camera centre (for SH view directions) and the limits of x/z and y/z
+/// at which the EWA Jacobian is clamped (30% beyond the image, as gsplat).
+pub(crate) struct ViewGeometry<F> {
+    pub rot: [[F; 3]; 3],
+    pub trans: [F; 3],
+    pub campos: [F; 3],
+    pub lim_x: (F, F),
+    pub lim_y: (F, F),
+}
+
+impl<F: Real> ViewGeometry<F> {
+    pub fn new(camera: &Camera<F>) -> ViewGeometry<F> {
+        let v = &camera.viewmat;
+        let rot = [
+            [v[0][0], v[0][1], v[0][2]],
+            [v[1][0], v[1][1], v[1][2]],
+            [v[2][0], v[2][1], v[2][2]],
+        ];
+        let trans = [v[0][3], v[1][3], v[2][3]];
+        // Camera centre in world coordinates, −Rᵀt.
+        let campos = [0, 1, 2]
+            .map(|j| -(rot[0][j] * trans[0] + rot[1][j] * trans[1] + rot[2][j] * trans[2]));
+        let (w, h) = (F::c(camera.width as f64), F::c(camera.height as f64));
+        let tan_x = F::c(0.5) * w / camera.fx;
+        let tan_y = F::c(0.5) * h / camera.fy;
+        ViewGeometry {
+            rot,
+            trans,
+            campos,
+            lim_x: (
+                camera.cx / camera.fx + F::c(0.3) * tan_x,
+                (w - camera.cx) / camera.fx + F::c(0.3) * tan_x,
+            ),
+            lim_y: (
+                camera.cy / camera.fy + F::c(0.3) * tan_y,
+                (h - camera.cy) / camera.fy + F::c(0.3) * tan_y,
+            ),
+        }
+    }
+}
+
 /// How the 2D footprint is low-pass filtered.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Mode {
@@ -165,23 +234,14 @@ pub fn project<F: Real>(
     settings: &Settings<F>,
 ) -> Projected<F> {
     let n = g.means.len();
-    let v = &camera.viewmat;
-    let rot = [
-        [v[0][0], v[0][1], v[0][2]],
-        [v[1][0], v[1][1], v[1][2]],
-        [v[2][0], v[2][1], v[2][2]],
-    ];
-    let trans = [v[0][3], v[1][3], v[2][3]];
-    // Camera centre in world coordinates, −Rᵀt, for SH view directions.
-    let campos =
-        [0, 1, 2].map(|j| -(rot[0][j] * trans[0] + rot[1][j] * trans[1] + rot[2][j] * trans[2]));
+    let ViewGeometry {
+        rot,
+        trans,
+        campos,
+        lim_x: (lim_x_neg, lim_x_pos),
+        lim_y: (lim_y_neg, lim_y_pos),
+    } = ViewGeometry::new(camera);
     let (w, h) = (F::c(camera.width as f64), F::c(camera.height as f64));
-    let tan_x = F::c(0.5) * w / camera.fx;
-    let tan_y = F::c(0.5) * h / camera.fy;
-    let lim_x_pos = (w - camera.cx) / camera.fx + F::c(0.3) * tan_x;
-    let lim_x_neg = camera.cx / camera.fx + F::c(0.3) * tan_x;
-    let lim_y_pos = (h - camera.cy) / camera.fy + F::c(0.3) * tan_y;
-    let lim_y_neg = camera.cy / camera.fy + F::c(0.3) * tan_y;
     let per: Vec<_> = (0..n)
         .into_par_iter()
         .map(|i| {

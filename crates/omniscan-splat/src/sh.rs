@@ -74,6 +74,65 @@ pub fn evaluate<F: Real>(degree: usize, dir: [F; 3], coeffs: &[[F; 3]]) -> [F; 3
     out
 }
 
+/// Derivatives of the SH basis with respect to the (unit) direction.
+pub fn basis_gradient<F: Real>(degree: usize, d: [F; 3]) -> Vec<[F; 3]> {
+    let c = F::c;
+    let [x, y, z] = d;
+    let (c1, z0) = (c(C1), F::zero());
+    let mut out = vec![[z0; 3]];
+    if degree >= 1 {
+        out.extend([[z0, -c1, z0], [z0, z0, c1], [-c1, z0, z0]]);
+    }
+    if degree >= 2 {
+        let k = C2.map(c);
+        out.extend([
+            [k[0] * y, k[0] * x, z0],
+            [z0, k[1] * z, k[1] * y],
+            [c(-2.0) * k[2] * x, c(-2.0) * k[2] * y, c(4.0) * k[2] * z],
+            [k[3] * z, z0, k[3] * x],
+            [c(2.0) * k[4] * x, c(-2.0) * k[4] * y, z0],
+        ]);
+    }
+    if degree >= 3 {
+        let k = C3.map(c);
+        let (xx, yy, zz) = (x * x, y * y, z * z);
+        out.extend([
+            [
+                c(6.0) * k[0] * x * y,
+                k[0] * (c(3.0) * xx - c(3.0) * yy),
+                z0,
+            ],
+            [k[1] * y * z, k[1] * x * z, k[1] * x * y],
+            [
+                c(-2.0) * k[2] * x * y,
+                k[2] * (c(4.0) * zz - xx - c(3.0) * yy),
+                c(8.0) * k[2] * y * z,
+            ],
+            [
+                c(-6.0) * k[3] * x * z,
+                c(-6.0) * k[3] * y * z,
+                k[3] * (c(6.0) * zz - c(3.0) * xx - c(3.0) * yy),
+            ],
+            [
+                k[4] * (c(4.0) * zz - c(3.0) * xx - yy),
+                c(-2.0) * k[4] * x * y,
+                c(8.0) * k[4] * x * z,
+            ],
+            [
+                c(2.0) * k[5] * x * z,
+                c(-2.0) * k[5] * y * z,
+                k[5] * (xx - yy),
+            ],
+            [
+                k[6] * (c(3.0) * xx - c(3.0) * yy),
+                c(-6.0) * k[6] * x * y,
+                z0,
+            ],
+        ]);
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

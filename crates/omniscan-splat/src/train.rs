@@ -24,7 +24,7 @@ use rand_chacha::ChaCha8Rng;
 
 use crate::backward::backward;
 use crate::metrics::{ImageView, psnr, weighted_ssim_and_gradient};
-use crate::raster::{Camera, Colors, Gaussians, Mode, Settings, project, rasterize};
+use crate::raster::{Camera, Colors, Gaussians, Settings, project, rasterize};
 use crate::sh::{C0, coefficients};
 use crate::{SplatError, Splats};
 
@@ -297,11 +297,7 @@ pub fn train(
         ];
         let settings = Settings {
             eps2d: 0.3,
-            mode: if s.antialiased {
-                Mode::Antialiased
-            } else {
-                Mode::Classic
-            },
+            mode: s.render_mode(),
             background,
         };
         let p = project(&g, &view.camera, &settings);
@@ -335,19 +331,17 @@ pub fn train(
             .iter()
             .map(|&x| x as f64 / (3.0 * wsum as f64))
             .collect();
-        let (ssim, d_ssim) = weighted_ssim_and_gradient(
-            &ImageView {
-                width: w,
-                height: h,
-                pixels: &r.rgb,
-            },
-            &ImageView {
-                width: w,
-                height: h,
-                pixels: &target,
-            },
-            &ssim_weights,
-        );
+        let rendered = ImageView {
+            width: w,
+            height: h,
+            pixels: &r.rgb,
+        };
+        let wanted = ImageView {
+            width: w,
+            height: h,
+            pixels: &target,
+        };
+        let (ssim, d_ssim) = weighted_ssim_and_gradient(&rendered, &wanted, &ssim_weights);
         for i in 0..n_px {
             for c in 0..3 {
                 d_rgb[i][c] -= lam * d_ssim[i][c];
@@ -421,16 +415,8 @@ pub fn train(
             s.sh[j] = [v[0], v[1], v[2]];
         }
         let image_psnr = psnr(
-            &ImageView {
-                width: w,
-                height: h,
-                pixels: &r.rgb,
-            },
-            &ImageView {
-                width: w,
-                height: h,
-                pixels: &target,
-            },
+            &rendered,
+            &wanted,
             Some(&view.gripper.iter().map(|&x| x < 0.5).collect::<Vec<_>>()),
         )
         .unwrap_or(0.0);
@@ -638,24 +624,15 @@ pub fn views_from_capture(
                 grip[o] = if grip[o] > 0.0 { 1.0 } else { 0.0 };
             }
         }
-        let m = v.camera_to_object.inverse().to_homogeneous();
-        let mut viewmat = [[0.0f32; 4]; 4];
-        for r in 0..4 {
-            for c in 0..4 {
-                viewmat[r][c] = m[(r, c)] as f32;
-            }
-        }
-        let camera = Camera {
-            viewmat,
-            fx: (k.fx / f as f64) as f32,
-            fy: (k.fy / f as f64) as f32,
-            cx: (k.cx / f as f64) as f32,
-            cy: (k.cy / f as f64) as f32,
+        let shrunk = omniscan_core::Intrinsics {
             width: w,
             height: h,
-            near: 0.01,
-            far: 100.0,
+            fx: k.fx / f as f64,
+            fy: k.fy / f as f64,
+            cx: k.cx / f as f64,
+            cy: k.cy / f as f64,
         };
+        let camera = Camera::from_pose(&v.camera_to_object, &shrunk);
         out.push(View {
             camera,
             image,
@@ -674,11 +651,7 @@ pub fn evaluate(model: &Splats, views: &[View]) -> serde_json::Value {
     let g = model.gaussians::<f32>();
     let settings = Settings {
         eps2d: 0.3,
-        mode: if model.antialiased {
-            Mode::Antialiased
-        } else {
-            Mode::Classic
-        },
+        mode: model.render_mode(),
         background: [0.0; 3],
     };
     let (mut p_all, mut s_all, mut p_mask, mut s_mask) =

@@ -43,48 +43,8 @@ const CASES: [&str; 7] = [
 fn forward_matches_gsplat_reference_vectors() {
     for case in CASES {
         let d = reference(case);
-        let (inp, cfg, fwd) = (&d["inputs"], &d["config"], &d["forward"]);
-        let colors = match cfg["sh_degree"].as_u64() {
-            Some(deg) => {
-                let coeffs: Vec<Vec<[f64; 3]>> =
-                    serde_json::from_value(inp["sh_coeffs"].clone()).unwrap();
-                Colors::Sh {
-                    degree: deg as usize,
-                    coeffs: coeffs.into_iter().flatten().collect(),
-                }
-            }
-            None => Colors::Rgb(v3(&inp["colors"])),
-        };
-        let g = Gaussians {
-            means: v3(&inp["means"]),
-            scales: v3(&inp["scales"]),
-            quats: serde_json::from_value(inp["quats_wxyz"].clone()).unwrap(),
-            opacities: serde_json::from_value(inp["opacities"].clone()).unwrap(),
-            colors,
-        };
-        let k: [[f64; 3]; 3] = serde_json::from_value(inp["K"].clone()).unwrap();
-        let camera = Camera {
-            viewmat: serde_json::from_value(inp["viewmat"].clone()).unwrap(),
-            fx: k[0][0],
-            fy: k[1][1],
-            cx: k[0][2],
-            cy: k[1][2],
-            width: cfg["width"].as_u64().unwrap() as u32,
-            height: cfg["height"].as_u64().unwrap() as u32,
-            near: cfg["near_plane"].as_f64().unwrap(),
-            far: cfg["far_plane"].as_f64().unwrap(),
-        };
-        let mode = if cfg["rasterize_mode"] == "antialiased" {
-            Mode::Antialiased
-        } else {
-            Mode::Classic
-        };
-        let background: Vec<f64> = serde_json::from_value(inp["background"].clone()).unwrap();
-        let settings = Settings {
-            eps2d: cfg["eps2d"].as_f64().unwrap(),
-            mode,
-            background: [background[0], background[1], background[2]],
-        };
+        let fwd = &d["forward"];
+        let (g, camera, settings) = case_inputs(&d);
         let (p, r) = render(&g, &camera, &settings);
 
         let radii: Vec<[i32; 2]> = serde_json::from_value(fwd["radii"].clone()).unwrap();

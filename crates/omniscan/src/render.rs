@@ -10,7 +10,7 @@ use omniscan_core::capture::{Arm, Capture};
 use omniscan_core::image_io::{RgbImage, write_rgb};
 use omniscan_core::poses::{ViewSet, camera_views};
 use omniscan_splat::ply::read_splats;
-use omniscan_splat::raster::{Camera, Mode, Settings, render};
+use omniscan_splat::raster::{Camera, Settings, render};
 
 #[derive(clap::Args)]
 pub struct RenderArgs {
@@ -88,11 +88,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
     };
     let settings = Settings {
         eps2d: 0.3,
-        mode: if model.antialiased {
-            Mode::Antialiased
-        } else {
-            Mode::Classic
-        },
+        mode: model.render_mode(),
         background: [args.background[0], args.background[1], args.background[2]],
     };
     let gaussians = model.gaussians::<f32>();
