@@ -264,7 +264,7 @@ fn run(cli: Cli) -> Result<()> {
                 ..SimConfig::default()
             };
             eprintln!(
-                "1/4 simulating a bimanual scan of {} into {}",
+                "1/5 simulating a bimanual scan of {} into {}",
                 config.object,
                 capture_dir.display()
             );
@@ -273,7 +273,7 @@ fn run(cli: Cli) -> Result<()> {
                 "    {} frames + {} empty-gripper frames in {:.1} s",
                 summary.frames, summary.empty_frames, summary.seconds
             );
-            eprintln!("2/4 validating the capture");
+            eprintln!("2/5 validating the capture");
             let capture = Capture::load(&capture_dir)?;
             let s = capture.summary();
             eprintln!(
@@ -281,7 +281,7 @@ fn run(cli: Cli) -> Result<()> {
                 s.width, s.height, s.left_frames, s.right_frames, s.empty_frames, s.ground_truth
             );
             eprintln!(
-                "3/4 merging the scans: right depth cloud onto the left from T_lh⁻¹·T_rh, refined by ICP and colored ICP"
+                "3/5 merging the scans: right depth cloud onto the left from T_lh⁻¹·T_rh, refined by ICP and colored ICP"
             );
             let merge = registration::merge_scans(&capture)?;
             eprintln!(
@@ -293,7 +293,7 @@ fn run(cli: Cli) -> Result<()> {
                 merge["refined_error_mm"].as_f64().unwrap_or(0.0),
                 merge["fitness"].as_f64().unwrap_or(0.0)
             );
-            eprintln!("4/4 exporting both arms, merged with the refined transform, for nerfstudio");
+            eprintln!("4/5 exporting both arms, merged with the refined transform, for nerfstudio");
             let right_to_left = merge_transform(&merge)?;
             let export = export_nerfstudio(
                 &capture,
@@ -303,10 +303,21 @@ fn run(cli: Cli) -> Result<()> {
                     masks: true,
                 },
             )?;
+            eprintln!(
+                "5/5 training the merged splat model on both arms (600 steps at 160x120 on the CPU; use `omniscan train` for full quality)"
+            );
+            let twin = train::train_merged(&capture, right_to_left, &out.join("twin.ply"), 600, 4)?;
+            eprintln!(
+                "    {} splats; held-out views: PSNR {:.2} dB, masked PSNR {:.2} dB",
+                twin["splats"],
+                twin["test"]["psnr"].as_f64().unwrap_or(f64::NAN),
+                twin["test"]["psnr_masked"].as_f64().unwrap_or(f64::NAN)
+            );
             println!(
                 "{}",
                 serde_json::to_string_pretty(&json!({
                     "capture": capture_dir,
+                    "twin": twin,
                     "summary": s,
                     "merge": {
                         "method": merge["method"],

@@ -170,3 +170,38 @@ pub fn eval(args: EvalArgs) -> Result<()> {
     }
     Ok(())
 }
+
+/// The demo's training step: the merged model on both arms' views (right
+/// frames brought into the left frame by `right_to_left`), every 8th view
+/// held out. Returns the evaluation report.
+pub fn train_merged(
+    capture: &Capture,
+    right_to_left: omniscan_core::Pose,
+    out: &std::path::Path,
+    steps: usize,
+    downscale: u32,
+) -> Result<serde_json::Value> {
+    let all = views_from_capture(capture, ViewSet::Merged { right_to_left }, downscale)?;
+    let (mut train_views, mut test_views) = (Vec::new(), Vec::new());
+    for (i, v) in all.into_iter().enumerate() {
+        if i % 8 == 7 {
+            test_views.push(v)
+        } else {
+            train_views.push(v)
+        }
+    }
+    let init = initial_splats(&train_views, 4000, 3, 0)?;
+    let config = TrainConfig {
+        sh_interval: steps / 4,
+        ..TrainConfig::with_steps(steps)
+    };
+    let bar = indicatif::ProgressBar::new(steps as u64);
+    let model = train(&train_views, init, &config, &mut |step, _, _| {
+        bar.set_position(step as u64)
+    })?;
+    bar.finish_and_clear();
+    write_splats(out, &model)?;
+    Ok(
+        json!({ "model": out, "splats": model.len(), "steps": steps, "test": omniscan_splat::train::evaluate(&model, &test_views) }),
+    )
+}
