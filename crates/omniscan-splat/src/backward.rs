@@ -62,9 +62,7 @@ impl<F: Real> Gradients<F> {
     }
 }
 
-const ALPHA_MAX: f64 = 0.999;
-const ALPHA_MIN: f64 = 1.0 / 255.0;
-const T_STOP: f64 = 1e-4;
+use crate::raster::{ALPHA_MAX, ALPHA_MIN, T_STOP};
 
 /// Per-tile accumulators: (Gaussian, d mean2d, d conic, d opacity_view, d colour).
 type TileGrads<F> = Vec<(u32, [F; 2], [F; 3], F, [F; 3])>;
@@ -101,10 +99,7 @@ pub fn backward<F: Real>(
                     let mut t_acc = F::one();
                     for (slot, &gi) in list.iter().enumerate() {
                         let gi = gi as usize;
-                        let [a, b, c] = p.conics[gi];
-                        let dx = p.means2d[gi][0] - fx;
-                        let dy = p.means2d[gi][1] - fy;
-                        let sigma = F::c(0.5) * (a * dx * dx + c * dy * dy) + b * dx * dy;
+                        let (sigma, _, _) = p.exponent(gi, fx, fy);
                         if sigma < F::zero() {
                             continue;
                         }
@@ -146,8 +141,7 @@ pub fn backward<F: Real>(
                         entry.3 = entry.3 + d_alpha_i * vis;
                         let d_sigma = -d_alpha_i * alpha;
                         let [a, b, cc] = p.conics[gi];
-                        let dx = p.means2d[gi][0] - fx;
-                        let dy = p.means2d[gi][1] - fy;
+                        let (_, dx, dy) = p.exponent(gi, fx, fy);
                         entry.2[0] = entry.2[0] + d_sigma * F::c(0.5) * dx * dx;
                         entry.2[1] = entry.2[1] + d_sigma * dx * dy;
                         entry.2[2] = entry.2[2] + d_sigma * F::c(0.5) * dy * dy;

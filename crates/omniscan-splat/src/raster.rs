@@ -145,9 +145,9 @@ impl<F: Real> Default for Settings<F> {
 }
 
 pub const TILE: u32 = 16;
-const ALPHA_MAX: f64 = 0.999;
-const ALPHA_MIN: f64 = 1.0 / 255.0;
-const T_STOP: f64 = 1e-4;
+pub(crate) const ALPHA_MAX: f64 = 0.999;
+pub(crate) const ALPHA_MIN: f64 = 1.0 / 255.0;
+pub(crate) const T_STOP: f64 = 1e-4;
 const RADIUS_SIGMA: f64 = 3.33;
 
 /// Projection of every Gaussian; invisible ones have zero radii.
@@ -168,6 +168,22 @@ pub struct Projected<F> {
 impl<F> Projected<F> {
     pub fn visible(&self, i: usize) -> bool {
         self.radii[i][0] > 0 && self.radii[i][1] > 0
+    }
+}
+
+impl<F: Real> Projected<F> {
+    /// The Gaussian exponent σ of splat `g` at the sample point (x, y):
+    /// 0.5·(a·dx² + c·dy²) + b·dx·dy with d = mean − point, and the offset d.
+    #[inline]
+    pub(crate) fn exponent(&self, g: usize, x: F, y: F) -> (F, F, F) {
+        let [a, b, c] = self.conics[g];
+        let dx = self.means2d[g][0] - x;
+        let dy = self.means2d[g][1] - y;
+        (
+            F::c(0.5) * (a * dx * dx + c * dy * dy) + b * dx * dy,
+            dx,
+            dy,
+        )
     }
 }
 
@@ -422,10 +438,7 @@ pub fn rasterize<F: Real>(
                     let mut count = 0;
                     for &g in list {
                         let g = g as usize;
-                        let [a, b, cc] = p.conics[g];
-                        let dx = p.means2d[g][0] - fx;
-                        let dy = p.means2d[g][1] - fy;
-                        let sigma = F::c(0.5) * (a * dx * dx + cc * dy * dy) + b * dx * dy;
+                        let (sigma, _, _) = p.exponent(g, fx, fy);
                         if sigma < F::zero() {
                             continue;
                         }
