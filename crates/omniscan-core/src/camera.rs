@@ -81,20 +81,6 @@ impl Intrinsics {
         }
         Ok(())
     }
-
-    /// The same camera at another resolution (intrinsics scaled).
-    pub fn scaled(&self, width: u32, height: u32) -> Self {
-        let sx = width as f64 / self.width as f64;
-        let sy = height as f64 / self.height as f64;
-        Intrinsics {
-            width,
-            height,
-            fx: self.fx * sx,
-            fy: self.fy * sy,
-            cx: self.cx * sx,
-            cy: self.cy * sy,
-        }
-    }
 }
 
 /// Converts an OpenCV camera-to-world pose (x right, y down, z forward) to the

@@ -133,11 +133,6 @@ pub fn look_at(eye: &Point3<f64>, target: &Point3<f64>, up: &Vector3<f64>) -> Po
     Isometry3::from_parts(Translation3::new(eye.x, eye.y, eye.z), rotation)
 }
 
-/// Rotation angle of a pose in radians, in [0, π].
-pub fn rotation_angle(pose: &Pose) -> f64 {
-    pose.rotation.angle()
-}
-
 /// Angle (radians) and translation distance (metres) between two poses.
 pub fn pose_difference(a: &Pose, b: &Pose) -> (f64, f64) {
     let delta = a.inverse() * b;

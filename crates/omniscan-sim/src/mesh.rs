@@ -157,25 +157,6 @@ impl Mesh {
             .sum()
     }
 
-    /// Appends another mesh (its materials are appended too).
-    pub fn append(&mut self, other: &Mesh) {
-        let base = self.positions.len() as u32;
-        let material_base = self.materials.len() as u16;
-        let had_uvs = !self.uvs.is_empty() || self.positions.is_empty();
-        self.positions.extend_from_slice(&other.positions);
-        self.normals.extend_from_slice(&other.normals);
-        if had_uvs && other.uvs.len() == other.positions.len() {
-            self.uvs.extend_from_slice(&other.uvs);
-        } else {
-            self.uvs.clear();
-        }
-        self.triangles
-            .extend(other.triangles.iter().map(|t| t.map(|i| i + base)));
-        self.triangle_materials
-            .extend(other.triangle_materials.iter().map(|m| m + material_base));
-        self.materials.extend(other.materials.iter().cloned());
-    }
-
     /// Scales and translates every vertex.
     pub fn scale_translate(&mut self, scale: f32, offset: Vector3<f32>) {
         for p in &mut self.positions {

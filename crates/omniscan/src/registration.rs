@@ -276,9 +276,8 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             10f64.to_radians(),
         ),
     );
-    let source = source.transformed(&perturb);
+    let mut source = source.transformed(&perturb);
     estimate_normals(&mut target, 4.0 * spacing, 30);
-    let mut source = source;
     estimate_normals(&mut source, 4.0 * spacing, 30);
     let tmp = tempfile::tempdir()?;
     let (src_path, tgt_path, fp_path) = (
