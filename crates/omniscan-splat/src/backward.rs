@@ -62,7 +62,7 @@ impl<F: Real> Gradients<F> {
     }
 }
 
-use crate::raster::{ALPHA_MAX, ALPHA_MIN, T_STOP};
+use crate::raster::{ALPHA_MAX, ALPHA_MIN, SIGMA_SKIP, T_STOP};
 
 /// Per-tile accumulators: (Gaussian, d mean2d, d conic, d opacity_view, d colour).
 type TileGrads<F> = Vec<(u32, [F; 2], [F; 3], F, [F; 3])>;
@@ -100,7 +100,7 @@ pub fn backward<F: Real>(
                     for (slot, &gi) in list.iter().enumerate() {
                         let gi = gi as usize;
                         let (sigma, _, _) = p.exponent(gi, fx, fy);
-                        if sigma < F::zero() {
+                        if sigma < F::zero() || sigma > F::c(SIGMA_SKIP) {
                             continue;
                         }
                         let vis = (-sigma).exp();

@@ -147,6 +147,10 @@ impl<F: Real> Default for Settings<F> {
 pub const TILE: u32 = 16;
 pub(crate) const ALPHA_MAX: f64 = 0.999;
 pub(crate) const ALPHA_MIN: f64 = 1.0 / 255.0;
+/// Opacities are at most 1, so past this exponent alpha < 1/255 whatever the
+/// opacity (e^-5.55 < 1/255): the pixel is skipped without evaluating the
+/// exponential, whose underflow path is slow for the far tails.
+pub(crate) const SIGMA_SKIP: f64 = 5.55;
 pub(crate) const T_STOP: f64 = 1e-4;
 const RADIUS_SIGMA: f64 = 3.33;
 
@@ -358,8 +362,25 @@ pub fn tile_lists<F: Real>(p: &Projected<F>, width: u32, height: u32) -> Vec<Vec
         if !p.visible(i) {
             continue;
         }
+        // Opacity-aware bounds: beyond the ellipse where opacity·e^(-σ)
+        // falls to 1/255 every pixel is skipped by the compositing anyway,
+        // so the tile lists (and the image) are the same with far fewer
+        // entries; faint Gaussians, the bulk of a trained model, shrink most.
+        let opacity = p.opacities[i];
+        if opacity < F::c(ALPHA_MIN) {
+            continue;
+        }
+        let level = F::c(2.0) * (opacity * F::c(1.0 / ALPHA_MIN)).ln();
+        let [ca, cb, cc] = p.conics[i];
+        let inverse_det = ca * cc - cb * cb;
+        let (sxx, syy) = (cc / inverse_det, ca / inverse_det);
         let [mx, my] = p.means2d[i];
         let [rx, ry] = p.radii[i].map(|r| F::c(r as f64));
+        let (rx, ry) = if inverse_det > F::zero() && sxx.is_finite() && syy.is_finite() {
+            ((level * sxx).sqrt().min(rx), (level * syy).sqrt().min(ry))
+        } else {
+            (rx, ry)
+        };
         let x0 = ((mx - rx) / tile)
             .floor()
             .to_i64()
@@ -427,7 +448,20 @@ pub fn rasterize<F: Real>(
         .into_par_iter()
         .map(|t| {
             let (ox, oy) = ((t % tx) * TILE, (t / tx) * TILE);
-            let list = &tiles[t as usize];
+            // Gathered once per tile so the per-pixel loop reads contiguous memory.
+            let packed: Vec<([F; 2], [F; 3], F, [F; 3], F)> = tiles[t as usize]
+                .iter()
+                .map(|&g| {
+                    let g = g as usize;
+                    (
+                        p.means2d[g],
+                        p.conics[g],
+                        p.opacities[g],
+                        p.colors[g],
+                        p.depths[g],
+                    )
+                })
+                .collect();
             let mut out = Vec::with_capacity((TILE * TILE) as usize);
             for py in oy..(oy + TILE).min(height) {
                 for px in ox..(ox + TILE).min(width) {
@@ -436,13 +470,13 @@ pub fn rasterize<F: Real>(
                     let mut c = [F::zero(); 3];
                     let mut d = F::zero();
                     let mut count = 0;
-                    for &g in list {
-                        let g = g as usize;
-                        let (sigma, _, _) = p.exponent(g, fx, fy);
-                        if sigma < F::zero() {
+                    for &([mx, my], [a, b, cc], opacity, color, depth) in &packed {
+                        let (dx, dy) = (mx - fx, my - fy);
+                        let sigma = F::c(0.5) * (a * dx * dx + cc * dy * dy) + b * dx * dy;
+                        if sigma < F::zero() || sigma > F::c(SIGMA_SKIP) {
                             continue;
                         }
-                        let alpha = (p.opacities[g] * (-sigma).exp()).min(F::c(ALPHA_MAX));
+                        let alpha = (opacity * (-sigma).exp()).min(F::c(ALPHA_MAX));
                         if alpha < F::c(ALPHA_MIN) {
                             continue;
                         }
@@ -451,10 +485,10 @@ pub fn rasterize<F: Real>(
                             break;
                         }
                         let w = alpha * t_acc;
-                        for (acc, col) in c.iter_mut().zip(p.colors[g]) {
+                        for (acc, col) in c.iter_mut().zip(color) {
                             *acc = *acc + col * w;
                         }
-                        d = d + p.depths[g] * w;
+                        d = d + depth * w;
                         t_acc = next;
                         count += 1;
                     }
