@@ -9,8 +9,9 @@ use crate::Splats;
 use crate::raster::Camera;
 use omniscan_core::geometry::look_at;
 
-/// `count` cameras of `width` x `height` pixels orbiting the model.
-pub fn orbit_cameras(model: &Splats, count: usize, width: u32, height: u32) -> Vec<Camera<f32>> {
+/// The model's robust centre (median of its opaque splats) and radius (half
+/// the diagonal of the box holding the central 90% of them per axis).
+pub fn robust_bounds(model: &Splats) -> (Point3<f64>, f64) {
     let sigmoid = |x: f32| 1.0 / (1.0 + (-x).exp());
     let mut pts: Vec<[f32; 3]> = model
         .means
@@ -21,6 +22,9 @@ pub fn orbit_cameras(model: &Splats, count: usize, width: u32, height: u32) -> V
         .collect();
     if pts.is_empty() {
         pts = model.means.clone();
+    }
+    if pts.is_empty() {
+        return (Point3::origin(), 1.0);
     }
     let mut axes: Vec<Vec<f32>> = (0..3).map(|k| pts.iter().map(|p| p[k]).collect()).collect();
     let mut centre = [0.0f64; 3];
@@ -35,10 +39,14 @@ pub fn orbit_cameras(model: &Splats, count: usize, width: u32, height: u32) -> V
         centre[k] = mid as f64;
         radius += ((hi - lo) as f64 * 0.5).powi(2);
     }
-    let radius = radius.sqrt().max(1e-6);
+    (Point3::from(centre), radius.sqrt().max(1e-6))
+}
+
+/// `count` cameras of `width` x `height` pixels orbiting the model.
+pub fn orbit_cameras(model: &Splats, count: usize, width: u32, height: u32) -> Vec<Camera<f32>> {
+    let (target, radius) = robust_bounds(model);
     let focal = 0.5 * width as f64 / (25f64.to_radians()).tan();
     let distance = radius / (25f64.to_radians()).tan() * 1.5;
-    let target = Point3::from(centre);
     (0..count.max(1))
         .map(|i| {
             let azimuth = std::f64::consts::TAU * i as f64 / count.max(1) as f64;

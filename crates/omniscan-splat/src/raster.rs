@@ -179,6 +179,30 @@ impl<F: Real> Projected<F> {
     /// The Gaussian exponent σ of splat `g` at the sample point (x, y):
     /// 0.5·(a·dx² + c·dy²) + b·dx·dy with d = mean − point, and the offset d.
     #[inline]
+    /// Half-extents in x and y of the ellipse where Gaussian `g`'s
+    /// opacity·e^(-σ) falls to 1/255 (clamped to its 3.33σ radii); `None` when
+    /// it can never reach 1/255. Every pixel outside is skipped by the
+    /// compositing anyway, so culling by it changes no image, and faint
+    /// Gaussians, the bulk of a trained model, shrink most.
+    pub(crate) fn reach(&self, g: usize) -> Option<(F, F)> {
+        let opacity = self.opacities[g];
+        if opacity < F::c(ALPHA_MIN) {
+            return None;
+        }
+        let level = F::c(2.0) * (opacity * F::c(1.0 / ALPHA_MIN)).ln();
+        let [ca, cb, cc] = self.conics[g];
+        let inverse_det = ca * cc - cb * cb;
+        let (sxx, syy) = (cc / inverse_det, ca / inverse_det);
+        let [rx, ry] = self.radii[g].map(|r| F::c(r as f64));
+        Some(
+            if inverse_det > F::zero() && sxx.is_finite() && syy.is_finite() {
+                ((level * sxx).sqrt().min(rx), (level * syy).sqrt().min(ry))
+            } else {
+                (rx, ry)
+            },
+        )
+    }
+
     pub(crate) fn exponent(&self, g: usize, x: F, y: F) -> (F, F, F) {
         let [a, b, c] = self.conics[g];
         let dx = self.means2d[g][0] - x;
@@ -362,25 +386,10 @@ pub fn tile_lists<F: Real>(p: &Projected<F>, width: u32, height: u32) -> Vec<Vec
         if !p.visible(i) {
             continue;
         }
-        // Opacity-aware bounds: beyond the ellipse where opacity·e^(-σ)
-        // falls to 1/255 every pixel is skipped by the compositing anyway,
-        // so the tile lists (and the image) are the same with far fewer
-        // entries; faint Gaussians, the bulk of a trained model, shrink most.
-        let opacity = p.opacities[i];
-        if opacity < F::c(ALPHA_MIN) {
+        let Some((rx, ry)) = p.reach(i) else {
             continue;
-        }
-        let level = F::c(2.0) * (opacity * F::c(1.0 / ALPHA_MIN)).ln();
-        let [ca, cb, cc] = p.conics[i];
-        let inverse_det = ca * cc - cb * cb;
-        let (sxx, syy) = (cc / inverse_det, ca / inverse_det);
-        let [mx, my] = p.means2d[i];
-        let [rx, ry] = p.radii[i].map(|r| F::c(r as f64));
-        let (rx, ry) = if inverse_det > F::zero() && sxx.is_finite() && syy.is_finite() {
-            ((level * sxx).sqrt().min(rx), (level * syy).sqrt().min(ry))
-        } else {
-            (rx, ry)
         };
+        let [mx, my] = p.means2d[i];
         let x0 = ((mx - rx) / tile)
             .floor()
             .to_i64()
@@ -431,6 +440,13 @@ pub struct Render<F> {
     pub contributors: Vec<u32>,
 }
 
+/// A Gaussian as the compositing reads it: mean, conic, opacity, colour,
+/// depth, and the pixel box it can reach (x0, x1, y0, y1).
+type Packed<F> = ([F; 2], [F; 3], F, [F; 3], F, [F; 4]);
+
+/// Side of the quarter tiles that cull Gaussians before compositing.
+const SUBTILE: u32 = TILE / 2;
+
 /// One pixel's result: index, colour, alpha, depth sum, contributors.
 type PixelResult<F> = (usize, [F; 3], F, F, u32);
 
@@ -449,51 +465,71 @@ pub fn rasterize<F: Real>(
         .map(|t| {
             let (ox, oy) = ((t % tx) * TILE, (t / tx) * TILE);
             // Gathered once per tile so the per-pixel loop reads contiguous memory.
-            let packed: Vec<([F; 2], [F; 3], F, [F; 3], F)> = tiles[t as usize]
+            let packed: Vec<Packed<F>> = tiles[t as usize]
                 .iter()
                 .map(|&g| {
                     let g = g as usize;
+                    let (rx, ry) = p.reach(g).unwrap_or((F::zero(), F::zero()));
+                    let [mx, my] = p.means2d[g];
                     (
                         p.means2d[g],
                         p.conics[g],
                         p.opacities[g],
                         p.colors[g],
                         p.depths[g],
+                        [mx - rx, mx + rx, my - ry, my + ry],
                     )
                 })
                 .collect();
             let mut out = Vec::with_capacity((TILE * TILE) as usize);
-            for py in oy..(oy + TILE).min(height) {
-                for px in ox..(ox + TILE).min(width) {
-                    let (fx, fy) = (F::c(px as f64 + 0.5), F::c(py as f64 + 0.5));
-                    let mut t_acc = F::one();
-                    let mut c = [F::zero(); 3];
-                    let mut d = F::zero();
-                    let mut count = 0;
-                    for &([mx, my], [a, b, cc], opacity, color, depth) in &packed {
-                        let (dx, dy) = (mx - fx, my - fy);
-                        let sigma = F::c(0.5) * (a * dx * dx + cc * dy * dy) + b * dx * dy;
-                        if sigma < F::zero() || sigma > F::c(SIGMA_SKIP) {
-                            continue;
+            // Each quarter of the tile composites only the Gaussians whose
+            // reach touches it: same order, same image, fewer misses.
+            let mut local: Vec<Packed<F>> = Vec::with_capacity(packed.len());
+            for (qx, qy) in [(0, 0), (SUBTILE, 0), (0, SUBTILE), (SUBTILE, SUBTILE)] {
+                let (x0, y0) = (ox + qx, oy + qy);
+                let (x1, y1) = ((x0 + SUBTILE).min(width), (y0 + SUBTILE).min(height));
+                if x0 >= x1 || y0 >= y1 {
+                    continue;
+                }
+                let (lo_x, hi_x) = (F::c(x0 as f64 + 0.5), F::c(x1 as f64 - 0.5));
+                let (lo_y, hi_y) = (F::c(y0 as f64 + 0.5), F::c(y1 as f64 - 0.5));
+                local.clear();
+                local.extend(packed.iter().filter(|g| {
+                    let [bx0, bx1, by0, by1] = g.5;
+                    bx1 >= lo_x && bx0 <= hi_x && by1 >= lo_y && by0 <= hi_y
+                }));
+                for py in y0..y1 {
+                    for px in x0..x1 {
+                        let (fx, fy) = (F::c(px as f64 + 0.5), F::c(py as f64 + 0.5));
+                        let mut t_acc = F::one();
+                        let mut c = [F::zero(); 3];
+                        let mut d = F::zero();
+                        let mut count = 0;
+                        for &([mx, my], [a, b, cc], opacity, color, depth, _) in &local {
+                            let (dx, dy) = (mx - fx, my - fy);
+                            let sigma = F::c(0.5) * (a * dx * dx + cc * dy * dy) + b * dx * dy;
+                            if sigma < F::zero() || sigma > F::c(SIGMA_SKIP) {
+                                continue;
+                            }
+                            let alpha = (opacity * (-sigma).exp()).min(F::c(ALPHA_MAX));
+                            if alpha < F::c(ALPHA_MIN) {
+                                continue;
+                            }
+                            let next = t_acc * (F::one() - alpha);
+                            if next <= F::c(T_STOP) {
+                                break;
+                            }
+                            let w = alpha * t_acc;
+                            for (acc, col) in c.iter_mut().zip(color) {
+                                *acc = *acc + col * w;
+                            }
+                            d = d + depth * w;
+                            t_acc = next;
+                            count += 1;
                         }
-                        let alpha = (opacity * (-sigma).exp()).min(F::c(ALPHA_MAX));
-                        if alpha < F::c(ALPHA_MIN) {
-                            continue;
-                        }
-                        let next = t_acc * (F::one() - alpha);
-                        if next <= F::c(T_STOP) {
-                            break;
-                        }
-                        let w = alpha * t_acc;
-                        for (acc, col) in c.iter_mut().zip(color) {
-                            *acc = *acc + col * w;
-                        }
-                        d = d + depth * w;
-                        t_acc = next;
-                        count += 1;
+                        let rgb = [0, 1, 2].map(|ch| c[ch] + t_acc * background[ch]);
+                        out.push(((py * width + px) as usize, rgb, F::one() - t_acc, d, count));
                     }
-                    let rgb = [0, 1, 2].map(|ch| c[ch] + t_acc * background[ch]);
-                    out.push(((py * width + px) as usize, rgb, F::one() - t_acc, d, count));
                 }
             }
             (t, out)

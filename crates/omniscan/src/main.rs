@@ -1,6 +1,7 @@
 //! The `omniscan` command line: simulate in-hand scans, check and export
 //! captures, print the scan plan, and benchmark.
 
+mod inspect;
 mod registration;
 mod render;
 mod train;
@@ -70,6 +71,10 @@ enum Command {
     Render(render::RenderArgs),
     /// Register SOURCE onto TARGET (point clouds or splat models) and write the transform.
     Align(registration::AlignArgs),
+    /// Find the defective copy among splat models of three or more copies of a part, and show where.
+    Inspect(inspect::InspectArgs),
+    /// Make a good or defective copy of a splat model (for tests and benchmarks).
+    MakeCopy(inspect::CopyArgs),
     /// Print the gripper poses of the scan trajectory a robot would execute.
     Plan {
         #[command(flatten)]
@@ -88,6 +93,8 @@ enum Command {
 enum BenchCommand {
     /// Registration speed and accuracy: local ICP on frag_115 halves (against Open3D when given), global registration on random rotations.
     Registration(registration::BenchArgs),
+    /// Inspection accuracy and time on triplets of generated good and defective copies.
+    Inspect(inspect::BenchArgs),
     /// Time a full simulated capture: both arms' trajectories plus the empty pass.
     Sim {
         #[arg(long, default_value = "builtin:flashlight")]
@@ -395,6 +402,11 @@ fn run(cli: Cli) -> Result<()> {
             );
         }
         Command::Align(args) => registration::align(args)?,
+        Command::Inspect(args) => inspect::run(args)?,
+        Command::MakeCopy(args) => inspect::make_copy(args)?,
+        Command::Bench {
+            which: BenchCommand::Inspect(args),
+        } => inspect::bench(args)?,
         Command::Render(args) => render::run(args)?,
         Command::Train(args) => train::run(args)?,
         Command::Eval(args) => train::eval(args)?,

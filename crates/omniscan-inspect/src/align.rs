@@ -1,0 +1,238 @@
+//! Aligning each model to the reference (paper, "Defect Inspection": TEASER++
+//! global registration on the splat point clouds, refined by ICP).
+//!
+//! The points are the splat centres that pass an opacity and size filter,
+//! cleaned by statistical outlier removal. Global registration
+//! ([`omniscan_register::global`]) proposes hypotheses and ranks them by
+//! fitness; a part that is nearly symmetric (a bracket, a marker) has
+//! twins, poses that fit its geometry almost as well as the right one. Such
+//! near-ties are settled here by appearance: the hypothesis whose renders
+//! look most like the reference's wins. An alignment whose fitness stays
+//! under `min_fitness` is an error, not a guess.
+
+use nalgebra::Point3;
+use rayon::prelude::*;
+use serde::Serialize;
+
+use omniscan_core::Pose;
+use omniscan_register::PointCloud;
+use omniscan_register::cloud::SplatFilter;
+use omniscan_register::global::{GlobalSettings, global_registration};
+use omniscan_register::preprocess::statistical_inliers;
+use omniscan_splat::Splats;
+use omniscan_splat::sh::C0;
+
+use crate::InspectError;
+use crate::views::{View, render_views};
+
+/// Splat centres that pass `filter`, with their DC colour, outliers removed.
+pub fn model_points(model: &Splats, filter: &SplatFilter) -> PointCloud {
+    let sigmoid = |x: f32| 1.0 / (1.0 + (-x as f64).exp());
+    let largest: Vec<f64> = model
+        .log_scales
+        .iter()
+        .map(|s| s.iter().copied().fold(f32::NEG_INFINITY, f32::max).exp() as f64)
+        .collect();
+    let mut sorted = largest.clone();
+    sorted.sort_by(f64::total_cmp);
+    let median = sorted
+        .get(sorted.len() / 2)
+        .copied()
+        .unwrap_or(f64::INFINITY);
+    let k = model.sh_coefficients();
+    let mut cloud = PointCloud::default();
+    for i in 0..model.len() {
+        if sigmoid(model.opacity_logits[i]) < filter.min_opacity
+            || largest[i] > filter.max_scale_over_median * median
+        {
+            continue;
+        }
+        cloud
+            .points
+            .push(Point3::from(model.means[i].map(|v| v as f64)));
+        let dc = model.sh[i * k];
+        cloud
+            .colors
+            .push(dc.map(|c| (0.5 + C0 as f32 * c).clamp(0.0, 1.0)));
+    }
+    if cloud.len() > 30 {
+        let keep = statistical_inliers(&cloud, 20, 2.0);
+        cloud = cloud.select(&keep);
+    }
+    cloud
+}
+
+/// How one model was aligned to the reference.
+#[derive(Debug, Clone, Serialize)]
+pub struct Alignment {
+    /// Maps the model's frame into the reference's.
+    #[serde(serialize_with = "rows")]
+    pub transform: Pose,
+    /// Share of the model's points with a reference point within `max_distance`.
+    pub fitness: f64,
+    pub inlier_rmse: f64,
+    /// Correspondence distance of the final ICP (model units).
+    pub max_distance: f64,
+    /// The hypothesis that won (`identity` for the reference itself).
+    pub method: String,
+    /// Hypotheses within 0.03 fitness of the best that appearance had to decide between.
+    pub near_ties: usize,
+}
+
+fn rows<S: serde::Serializer>(pose: &Pose, s: S) -> Result<S::Ok, S::Error> {
+    serde::Serialize::serialize(&omniscan_core::geometry::pose_to_rows(pose), s)
+}
+
+impl Alignment {
+    pub fn identity() -> Alignment {
+        Alignment {
+            transform: Pose::identity(),
+            fitness: 1.0,
+            inlier_rmse: 0.0,
+            max_distance: 0.0,
+            method: "identity".into(),
+            near_ties: 0,
+        }
+    }
+}
+
+/// Settings of the alignment.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AlignSettings {
+    pub filter: SplatFilter,
+    /// Below this final fitness the model counts as not aligned.
+    pub min_fitness: f64,
+    pub seed: u64,
+}
+
+impl Default for AlignSettings {
+    fn default() -> Self {
+        AlignSettings {
+            filter: SplatFilter::default(),
+            min_fitness: 0.5,
+            seed: 0,
+        }
+    }
+}
+
+/// Mean per-pixel RGB distance between renders of `model` moved by `pose` and
+/// the reference's renders, over pixels either covers.
+fn appearance_distance(
+    model: &Splats,
+    pose: &Pose,
+    views: &[View],
+    reference: &[crate::views::ViewRender],
+) -> Result<f64, InspectError> {
+    let moved = model.transformed(pose, 1.0)?;
+    let renders = render_views(&moved, views);
+    let (mut sum, mut count) = (0.0, 0usize);
+    for (a, b) in renders.iter().zip(reference) {
+        for i in 0..a.alpha.len() {
+            if a.alpha[i] < 0.5 && b.alpha[i] < 0.5 {
+                continue;
+            }
+            sum += (0..3)
+                .map(|k| (a.rgb[i][k] - b.rgb[i][k]).powi(2) as f64)
+                .sum::<f64>()
+                .sqrt();
+            count += 1;
+        }
+    }
+    Ok(if count == 0 {
+        f64::INFINITY
+    } else {
+        sum / count as f64
+    })
+}
+
+/// Aligns `model` (points `source`) to the reference (points `target`,
+/// renders `reference_renders` from `views`).
+pub fn align_model(
+    model: &Splats,
+    source: &PointCloud,
+    target: &PointCloud,
+    views: &[View],
+    reference_renders: &[crate::views::ViewRender],
+    settings: &AlignSettings,
+) -> Result<Alignment, InspectError> {
+    let result = global_registration(
+        source,
+        target,
+        &GlobalSettings {
+            seed: settings.seed,
+            ..GlobalSettings::default()
+        },
+    )?;
+    let best_fitness = result
+        .candidates
+        .iter()
+        .map(|c| c.registration.fitness)
+        .fold(0.0, f64::max);
+    // Distinct near-tied poses (twins) go to the appearance test.
+    let mut ties: Vec<&omniscan_register::global::Candidate> = Vec::new();
+    let mut by_fitness: Vec<_> = result.candidates.iter().collect();
+    by_fitness.sort_by(|a, b| b.registration.fitness.total_cmp(&a.registration.fitness));
+    for c in by_fitness {
+        if c.registration.fitness < best_fitness - 0.03 {
+            break;
+        }
+        let distinct = ties.iter().all(|t| {
+            let (angle, _) = omniscan_core::geometry::pose_difference(
+                &t.registration.transformation,
+                &c.registration.transformation,
+            );
+            angle > 5f64.to_radians()
+        });
+        if distinct {
+            ties.push(c);
+        }
+    }
+    let mut method = result.best.method.to_string();
+    let mut transform = result.best.registration.transformation;
+    if ties.len() > 1 {
+        let scores: Vec<Result<f64, InspectError>> = ties
+            .par_iter()
+            .map(|c| {
+                appearance_distance(
+                    model,
+                    &c.registration.transformation,
+                    views,
+                    reference_renders,
+                )
+            })
+            .collect();
+        let mut best = (f64::INFINITY, 0);
+        for (i, s) in scores.into_iter().enumerate() {
+            let s = s?;
+            if s < best.0 {
+                best = (s, i);
+            }
+        }
+        method = ties[best.1].method.to_string();
+        transform = ties[best.1].registration.transformation;
+    }
+    // Final full-resolution ICP from the chosen hypothesis.
+    let spacing = omniscan_register::global::median_spacing(target);
+    let max_distance = (3.0 * spacing).max(0.4 * result.voxel);
+    let tt = omniscan_register::icp::Target::new(target);
+    let refined = omniscan_register::icp::icp(
+        source,
+        &tt,
+        max_distance,
+        &transform,
+        omniscan_register::icp::Estimator::PointToPoint,
+        omniscan_register::icp::Kernel::L2,
+        &omniscan_register::icp::Criteria {
+            max_iteration: 50,
+            ..Default::default()
+        },
+    )?;
+    Ok(Alignment {
+        transform: refined.transformation,
+        fitness: refined.fitness,
+        inlier_rmse: refined.inlier_rmse,
+        max_distance,
+        method,
+        near_ties: ties.len(),
+    })
+}

@@ -1,0 +1,594 @@
+//! Copies of a splat model for tests and benchmarks: good copies (a new
+//! pose, splats resampled, positions and colours perturbed, as a second
+//! scan of the same part would give) and defective copies with a planted
+//! defect of known kind, size and place (paper, "Defect Inspection": geometric
+//! defects over 4.5 mm, visual defects over 2 mm).
+//!
+//! Defects are placed on the visible surface: a random view is rendered and
+//! a random opaque, depth-smooth pixel near the object's middle gives the
+//! point and, from the depth around it, the outward normal (towards the
+//! camera that sees it). Sizes are in millimetres and reach the model's
+//! units through its units per metre.
+
+use nalgebra::{Point3, UnitQuaternion, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+
+use omniscan_core::Pose;
+use omniscan_splat::Splats;
+use omniscan_splat::orbit::robust_bounds;
+use omniscan_splat::sh::C0;
+
+use crate::views::{SURFACE_ALPHA, back_project, render_views, smooth_depth, sphere_views};
+use crate::{InspectError, standard_normal};
+
+/// How a good copy differs from the original.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CopySettings {
+    pub seed: u64,
+    /// Standard deviation of the splat position noise, millimetres.
+    pub position_noise_mm: f64,
+    /// Share of splats dropped (resampling).
+    pub drop_fraction: f64,
+    /// Standard deviation of the colour noise per splat and channel (0-1 RGB).
+    pub colour_noise: f64,
+    /// Move the copy to a random pose (any rotation, a shift up to its size).
+    pub random_pose: bool,
+}
+
+impl Default for CopySettings {
+    fn default() -> Self {
+        CopySettings {
+            seed: 0,
+            position_noise_mm: 0.3,
+            drop_fraction: 0.05,
+            colour_noise: 0.02,
+            random_pose: true,
+        }
+    }
+}
+
+fn check_units(units_per_metre: f64) -> Result<(), InspectError> {
+    if units_per_metre.is_finite() && units_per_metre > 0.0 {
+        Ok(())
+    } else {
+        Err(InspectError::Invalid(format!(
+            "units per metre must be positive, got {units_per_metre}"
+        )))
+    }
+}
+
+/// A good copy of `model` and the pose that maps the original's frame into
+/// the copy's.
+pub fn good_copy(
+    model: &Splats,
+    units_per_metre: f64,
+    settings: &CopySettings,
+) -> Result<(Splats, Pose), InspectError> {
+    check_units(units_per_metre)?;
+    model.validate()?;
+    let mut rng = ChaCha8Rng::seed_from_u64(settings.seed);
+    let sigma = settings.position_noise_mm * 1e-3 * units_per_metre;
+    let k = model.sh_coefficients();
+    let mut out = Splats {
+        sh_degree: model.sh_degree,
+        antialiased: model.antialiased,
+        ..Splats::default()
+    };
+    for i in 0..model.len() {
+        if rng.random::<f64>() < settings.drop_fraction {
+            continue;
+        }
+        let mean = model.means[i].map(|m| m + (sigma * standard_normal(&mut rng)) as f32);
+        out.means.push(mean);
+        out.log_scales.push(model.log_scales[i]);
+        out.quats.push(model.quats[i]);
+        out.opacity_logits.push(model.opacity_logits[i]);
+        let mut sh = model.sh[i * k..(i + 1) * k].to_vec();
+        for c in &mut sh[0] {
+            *c += (settings.colour_noise / C0 * standard_normal(&mut rng)) as f32;
+        }
+        out.sh.extend(sh);
+    }
+    let pose = if settings.random_pose {
+        let (_, radius) = robust_bounds(model);
+        let axis = Vector3::new(
+            standard_normal(&mut rng),
+            standard_normal(&mut rng),
+            standard_normal(&mut rng),
+        );
+        let rotation = UnitQuaternion::from_scaled_axis(
+            axis.normalize() * rng.random_range(0.0..std::f64::consts::PI),
+        );
+        let shift = Vector3::new(
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+        ) * radius;
+        Pose::from_parts(shift.into(), rotation)
+    } else {
+        Pose::identity()
+    };
+    Ok((out.transformed(&pose, 1.0)?, pose))
+}
+
+/// Kinds of planted defect.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DefectKind {
+    /// Surface pushed in by the size.
+    Dent,
+    /// Surface pushed out by the size.
+    Bump,
+    /// A ball of the size's radius cut away.
+    Remove,
+    /// A hemispherical lump of the size's radius added.
+    Add,
+    /// A patch of the size's diameter in another colour.
+    Recolour,
+    /// A thin line of the size's length, darker or lighter.
+    Scratch,
+    /// A strip of tape, the size long and half as wide.
+    Tape,
+}
+
+impl DefectKind {
+    pub const ALL: [DefectKind; 7] = [
+        DefectKind::Dent,
+        DefectKind::Bump,
+        DefectKind::Remove,
+        DefectKind::Add,
+        DefectKind::Recolour,
+        DefectKind::Scratch,
+        DefectKind::Tape,
+    ];
+    pub const GEOMETRIC: [DefectKind; 4] = [
+        DefectKind::Dent,
+        DefectKind::Bump,
+        DefectKind::Remove,
+        DefectKind::Add,
+    ];
+    pub const VISUAL: [DefectKind; 3] =
+        [DefectKind::Recolour, DefectKind::Scratch, DefectKind::Tape];
+
+    pub fn is_geometric(self) -> bool {
+        DefectKind::GEOMETRIC.contains(&self)
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            DefectKind::Dent => "dent",
+            DefectKind::Bump => "bump",
+            DefectKind::Remove => "remove",
+            DefectKind::Add => "add",
+            DefectKind::Recolour => "recolour",
+            DefectKind::Scratch => "scratch",
+            DefectKind::Tape => "tape",
+        }
+    }
+
+    pub fn parse(text: &str) -> Result<DefectKind, InspectError> {
+        DefectKind::ALL
+            .into_iter()
+            .find(|k| k.name() == text)
+            .ok_or_else(|| {
+                InspectError::Invalid(format!(
+                    "unknown defect kind `{text}`: use one of {}",
+                    DefectKind::ALL.map(|k| k.name()).join(", ")
+                ))
+            })
+    }
+}
+
+/// Where and what a planted defect is, in the original model's frame and units.
+#[derive(Debug, Clone, Serialize)]
+pub struct PlantedDefect {
+    pub kind: DefectKind,
+    pub size_mm: f64,
+    pub centre: [f64; 3],
+    pub normal: [f64; 3],
+    /// Splats moved, removed, added or recoloured.
+    pub affected_splats: usize,
+}
+
+/// A point on the visible surface with its outward normal.
+fn surface_site(
+    model: &Splats,
+    rng: &mut ChaCha8Rng,
+) -> Result<(Point3<f64>, Vector3<f64>), InspectError> {
+    let (centre, radius) = robust_bounds(model);
+    let views = sphere_views(&centre, radius, 24, 96, 72);
+    let renders = render_views(model, &views);
+    for _ in 0..200 {
+        let v = rng.random_range(0..views.len());
+        let (view, r) = (&views[v], &renders[v]);
+        // Near the middle of the image, where the surface faces the camera.
+        let x = rng.random_range(r.width / 4..3 * r.width / 4);
+        let y = rng.random_range(r.height / 4..3 * r.height / 4);
+        let i = (y * r.width + x) as usize;
+        if r.surface_depth(i, SURFACE_ALPHA).is_none() || !smooth_depth(r, view, i) {
+            continue;
+        }
+        let at =
+            |x: u32, y: u32| back_project(view, x, y, r.depth[(y * r.width + x) as usize] as f64);
+        let p = at(x, y);
+        let dx = at(x + 1, y) - at(x - 1, y);
+        let dy = at(x, y + 1) - at(x, y - 1);
+        let mut n = dx.cross(&dy);
+        if n.norm() == 0.0 || !n.norm().is_finite() {
+            continue;
+        }
+        n.normalize_mut();
+        let eye = view.camera_to_world.translation.vector;
+        if n.dot(&(eye - p.coords)) < 0.0 {
+            n = -n;
+        }
+        return Ok((p, n));
+    }
+    Err(InspectError::Invalid(
+        "found no opaque surface to place a defect on".into(),
+    ))
+}
+
+fn sh_colour(model: &Splats, i: usize) -> [f64; 3] {
+    let dc = model.sh[i * model.sh_coefficients()];
+    dc.map(|c| (0.5 + C0 * c as f64).clamp(0.0, 1.0))
+}
+
+fn set_colour(model: &mut Splats, i: usize, colour: [f64; 3]) {
+    let k = model.sh_coefficients();
+    model.sh[i * k] = colour.map(|c| ((c - 0.5) / C0) as f32);
+    for rest in &mut model.sh[i * k + 1..(i + 1) * k] {
+        *rest = [0.0; 3];
+    }
+}
+
+/// Of a few strong colours, the one farthest from `local`.
+fn contrasting(local: [f64; 3], palette: &[[f64; 3]]) -> [f64; 3] {
+    let distance = |c: &[f64; 3]| (0..3).map(|k| (c[k] - local[k]).powi(2)).sum::<f64>();
+    *palette
+        .iter()
+        .max_by(|a, b| distance(a).total_cmp(&distance(b)))
+        .unwrap_or(&[1.0, 1.0, 0.0])
+}
+
+fn mean_colour(model: &Splats, indices: &[usize]) -> [f64; 3] {
+    let mut sum = [0.0; 3];
+    for &i in indices {
+        let c = sh_colour(model, i);
+        for k in 0..3 {
+            sum[k] += c[k];
+        }
+    }
+    sum.map(|s| s / indices.len().max(1) as f64)
+}
+
+/// Plants a defect of `kind` and `size_mm` at a random surface point of `model`.
+pub fn plant_defect(
+    model: &Splats,
+    kind: DefectKind,
+    size_mm: f64,
+    units_per_metre: f64,
+    seed: u64,
+) -> Result<(Splats, PlantedDefect), InspectError> {
+    check_units(units_per_metre)?;
+    model.validate()?;
+    if !(size_mm.is_finite() && size_mm > 0.0) {
+        return Err(InspectError::Invalid(format!(
+            "defect size must be positive, got {size_mm} mm"
+        )));
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let (p, n) = surface_site(model, &mut rng)?;
+    let size = size_mm * 1e-3 * units_per_metre;
+    // A tangent direction for scratches and tape.
+    let helper = if n.x.abs() < 0.9 {
+        Vector3::x()
+    } else {
+        Vector3::y()
+    };
+    let t0 = n.cross(&helper).normalize();
+    let t1 = n.cross(&t0);
+    let angle = rng.random_range(0.0..std::f64::consts::PI);
+    let (tangent, bitangent) = (
+        t0 * angle.cos() + t1 * angle.sin(),
+        -t0 * angle.sin() + t1 * angle.cos(),
+    );
+    let offset = |i: usize| Point3::from(model.means[i].map(|v| v as f64)) - p;
+    let mut out = model.clone();
+    let within = |radius: f64| -> Vec<usize> {
+        (0..model.len())
+            .filter(|&i| offset(i).norm() <= radius)
+            .collect()
+    };
+    let affected = match kind {
+        DefectKind::Dent | DefectKind::Bump => {
+            let sign = if kind == DefectKind::Bump { 1.0 } else { -1.0 };
+            let moved = within(size);
+            for &i in &moved {
+                let d = offset(i);
+                let lateral = (d - n * d.dot(&n)).norm();
+                // Full height over the inner half, a smooth shoulder outside it.
+                let profile = if lateral <= 0.5 * size {
+                    1.0
+                } else {
+                    0.5 * (1.0 + (std::f64::consts::PI * (lateral / size - 0.5) / 0.5).cos())
+                };
+                let shift = n * (sign * size * profile);
+                for k in 0..3 {
+                    out.means[i][k] += shift[k] as f32;
+                }
+            }
+            moved.len()
+        }
+        DefectKind::Remove => {
+            let gone = within(size);
+            let keep: Vec<usize> = (0..model.len()).filter(|i| !gone.contains(i)).collect();
+            out = select(model, &keep);
+            gone.len()
+        }
+        DefectKind::Add => {
+            let near = within(size);
+            let colour = mean_colour(model, &near);
+            let spacing = size / 8.0;
+            let count = ((2.0 * std::f64::consts::PI * size * size) / (spacing * spacing)) as usize;
+            let k = model.sh_coefficients();
+            for _ in 0..count {
+                let mut u = Vector3::new(
+                    standard_normal(&mut rng),
+                    standard_normal(&mut rng),
+                    standard_normal(&mut rng),
+                )
+                .normalize();
+                if u.dot(&n) < 0.0 {
+                    u -= 2.0 * u.dot(&n) * n;
+                }
+                let q = p + u * size;
+                out.means.push([q.x as f32, q.y as f32, q.z as f32]);
+                out.log_scales.push([(spacing as f32).ln(); 3]);
+                out.quats.push([1.0, 0.0, 0.0, 0.0]);
+                out.opacity_logits.push(3.0);
+                out.sh.extend(std::iter::repeat_n([0.0f32; 3], k));
+                let last = out.len() - 1;
+                set_colour(&mut out, last, colour);
+            }
+            count
+        }
+        DefectKind::Recolour | DefectKind::Scratch | DefectKind::Tape => {
+            let depth_limit = (0.25 * size).max(1e-3 * units_per_metre);
+            // A line thinner than the splats would miss them all: at least
+            // half the distance to the fourth nearest splat.
+            let mut nearby: Vec<f64> = within(size).iter().map(|&i| offset(i).norm()).collect();
+            nearby.sort_by(f64::total_cmp);
+            let local_spacing = nearby.get(3).copied().unwrap_or(0.0);
+            // The rendered surface can lie a little off the splat centres
+            // that make it: widen the depth band until the mark holds splats.
+            let region_within = |depth_limit: f64| -> Vec<usize> {
+                (0..model.len())
+                    .filter(|&i| {
+                        let d = offset(i);
+                        let (along_n, along_t, along_b) =
+                            (d.dot(&n), d.dot(&tangent), d.dot(&bitangent));
+                        if along_n.abs() > depth_limit {
+                            return false;
+                        }
+                        match kind {
+                            DefectKind::Recolour => {
+                                (along_t.powi(2) + along_b.powi(2)).sqrt() <= 0.5 * size
+                            }
+                            DefectKind::Scratch => {
+                                let half_width = (size / 12.0)
+                                    .max(0.35e-3 * units_per_metre)
+                                    .max(0.5 * local_spacing);
+                                along_t.abs() <= 0.5 * size && along_b.abs() <= half_width
+                            }
+                            _ => along_t.abs() <= 0.5 * size && along_b.abs() <= 0.25 * size,
+                        }
+                    })
+                    .collect()
+            };
+            let mut region = region_within(depth_limit);
+            for widen in [2.0, 4.0, 8.0] {
+                if !region.is_empty() {
+                    break;
+                }
+                region = region_within(widen * depth_limit);
+            }
+            let local = mean_colour(model, &within(size));
+            let palette: &[[f64; 3]] = match kind {
+                DefectKind::Scratch => &[[0.05, 0.05, 0.05], [0.95, 0.95, 0.95]],
+                DefectKind::Tape => &[[0.95, 0.85, 0.1], [0.1, 0.3, 0.9], [0.9, 0.9, 0.9]],
+                _ => &[
+                    [0.9, 0.1, 0.1],
+                    [0.1, 0.7, 0.2],
+                    [0.1, 0.2, 0.9],
+                    [0.95, 0.9, 0.1],
+                ],
+            };
+            let colour = contrasting(local, palette);
+            for &i in &region {
+                set_colour(&mut out, i, colour);
+            }
+            region.len()
+        }
+    };
+    if affected == 0 {
+        return Err(InspectError::Invalid(format!(
+            "a {} mm {} touches no splat: the model is too sparse there",
+            size_mm,
+            kind.name()
+        )));
+    }
+    Ok((
+        out,
+        PlantedDefect {
+            kind,
+            size_mm,
+            centre: [p.x, p.y, p.z],
+            normal: [n.x, n.y, n.z],
+            affected_splats: affected,
+        },
+    ))
+}
+
+/// The splats at `indices`.
+fn select(model: &Splats, indices: &[usize]) -> Splats {
+    let k = model.sh_coefficients();
+    Splats {
+        means: indices.iter().map(|&i| model.means[i]).collect(),
+        log_scales: indices.iter().map(|&i| model.log_scales[i]).collect(),
+        quats: indices.iter().map(|&i| model.quats[i]).collect(),
+        opacity_logits: indices.iter().map(|&i| model.opacity_logits[i]).collect(),
+        sh_degree: model.sh_degree,
+        sh: indices
+            .iter()
+            .flat_map(|&i| model.sh[i * k..(i + 1) * k].iter().copied())
+            .collect(),
+        antialiased: model.antialiased,
+    }
+}
+
+/// A procedural test part: a box of `size` metres with opaque surface
+/// splats coloured by face, with a pattern, so registration and the
+/// visual comparison have something to hold on to. For tests.
+pub fn test_part(size: [f64; 3], spacing: f64) -> Splats {
+    let mut model = Splats {
+        sh_degree: 0,
+        ..Splats::default()
+    };
+    let half = size.map(|s| s * 0.5);
+    for axis in 0..3 {
+        for side in [-1.0, 1.0] {
+            let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
+            let nu = (size[u] / spacing).ceil() as usize;
+            let nv = (size[v] / spacing).ceil() as usize;
+            for a in 0..=nu {
+                for b in 0..=nv {
+                    let mut p = [0.0; 3];
+                    p[axis] = side * half[axis];
+                    p[u] = -half[u] + size[u] * a as f64 / nu as f64;
+                    p[v] = -half[v] + size[v] * b as f64 / nv as f64;
+                    // An asymmetric pattern: stripes on u, a darker quadrant.
+                    let stripe = ((p[u] / (3.0 * spacing)).floor() as i64).rem_euclid(2) as f64;
+                    let quadrant = if p[u] > 0.0 && p[v] > 0.0 { 0.5 } else { 1.0 };
+                    let base = [
+                        0.3 + 0.2 * axis as f64,
+                        0.6 - 0.15 * side,
+                        0.3 + 0.1 * stripe,
+                    ];
+                    let colour = base.map(|c| c * quadrant);
+                    model.means.push(p.map(|x| x as f32));
+                    let mut log_scale = [(0.7 * spacing).ln() as f32; 3];
+                    log_scale[axis] = (0.1 * spacing).ln() as f32;
+                    model.log_scales.push(log_scale);
+                    model.quats.push([1.0, 0.0, 0.0, 0.0]);
+                    model.opacity_logits.push(4.0);
+                    model.sh.push(colour.map(|c| ((c - 0.5) / C0) as f32));
+                }
+            }
+        }
+    }
+    model
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn part() -> Splats {
+        test_part([0.06, 0.04, 0.025], 0.0015)
+    }
+
+    #[test]
+    fn good_copy_moves_by_the_returned_pose() {
+        let model = part();
+        let settings = CopySettings {
+            drop_fraction: 0.0,
+            position_noise_mm: 0.0,
+            colour_noise: 0.0,
+            seed: 3,
+            ..CopySettings::default()
+        };
+        let (copy, pose) = good_copy(&model, 1.0, &settings).unwrap();
+        assert_eq!(copy.len(), model.len());
+        for i in (0..model.len()).step_by(97) {
+            let expected = pose * Point3::from(model.means[i].map(|v| v as f64));
+            let got = Point3::from(copy.means[i].map(|v| v as f64));
+            assert!((expected - got).norm() < 1e-6);
+        }
+        assert!(pose.rotation.angle() > 1e-3);
+    }
+
+    #[test]
+    fn good_copy_is_seeded() {
+        let model = part();
+        let a = good_copy(&model, 1.0, &CopySettings::default()).unwrap();
+        let b = good_copy(&model, 1.0, &CopySettings::default()).unwrap();
+        assert_eq!(a.0, b.0);
+        let c = good_copy(
+            &model,
+            1.0,
+            &CopySettings {
+                seed: 1,
+                ..CopySettings::default()
+            },
+        )
+        .unwrap();
+        assert_ne!(a.0, c.0);
+    }
+
+    #[test]
+    fn bump_moves_the_surface_out_by_its_size() {
+        let model = part();
+        let (bumped, defect) = plant_defect(&model, DefectKind::Bump, 5.0, 1.0, 7).unwrap();
+        let n = Vector3::from(defect.normal);
+        let c = Point3::from(defect.centre);
+        // The splat nearest the centre moved 5 mm along the normal.
+        let nearest = (0..model.len())
+            .min_by(|&a, &b| {
+                let d = |i: usize| (Point3::from(model.means[i].map(|v| v as f64)) - c).norm();
+                d(a).total_cmp(&d(b))
+            })
+            .unwrap();
+        let before = Vector3::from(model.means[nearest].map(|v| v as f64));
+        let after = Vector3::from(bumped.means[nearest].map(|v| v as f64));
+        assert!(((after - before).dot(&n) - 0.005).abs() < 1e-6);
+        assert!(defect.affected_splats > 10);
+        // Far away nothing changed.
+        let far = (0..model.len())
+            .filter(|&i| (Point3::from(model.means[i].map(|v| v as f64)) - c).norm() > 0.006)
+            .all(|i| model.means[i] == bumped.means[i]);
+        assert!(far);
+    }
+
+    #[test]
+    fn visual_defects_change_colour_not_geometry() {
+        let model = part();
+        for kind in DefectKind::VISUAL {
+            let (marked, defect) = plant_defect(&model, kind, 4.0, 1.0, 11).unwrap();
+            assert_eq!(marked.means, model.means, "{kind:?}");
+            assert_ne!(marked.sh, model.sh, "{kind:?}");
+            assert!(defect.affected_splats > 0);
+        }
+    }
+
+    #[test]
+    fn remove_and_add_change_the_count() {
+        let model = part();
+        let (removed, d) = plant_defect(&model, DefectKind::Remove, 6.0, 1.0, 5).unwrap();
+        assert_eq!(removed.len(), model.len() - d.affected_splats);
+        let (added, d) = plant_defect(&model, DefectKind::Add, 6.0, 1.0, 5).unwrap();
+        assert_eq!(added.len(), model.len() + d.affected_splats);
+        added.validate().unwrap();
+    }
+
+    #[test]
+    fn bad_sizes_are_errors() {
+        let model = part();
+        assert!(plant_defect(&model, DefectKind::Dent, -1.0, 1.0, 0).is_err());
+        assert!(plant_defect(&model, DefectKind::Dent, 5.0, f64::NAN, 0).is_err());
+        assert!(DefectKind::parse("crack").is_err());
+        assert_eq!(DefectKind::parse("tape").unwrap(), DefectKind::Tape);
+    }
+}

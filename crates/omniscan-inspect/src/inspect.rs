@@ -1,0 +1,308 @@
+//! The inspection pipeline as one call: align, render, compare, decide.
+
+use std::time::Instant;
+
+use rayon::prelude::*;
+use serde::Serialize;
+
+use omniscan_register::PointCloud;
+use omniscan_splat::Splats;
+use omniscan_splat::orbit::robust_bounds;
+
+use crate::InspectError;
+use crate::align::{AlignSettings, Alignment, align_model, model_points};
+use crate::differencing::{
+    PixelComparison, VisualSettings, compare_pixels, geometric_evidence, visual_evidence,
+};
+use crate::verdict::{PairEvidence, Verdict, VerdictSettings, decide};
+use crate::views::{View, ViewRender, render_views, sphere_views, surface_points};
+
+/// Settings of an inspection. Lengths in millimetres are converted to the
+/// models' units with `units_per_metre`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct InspectSettings {
+    /// Model units per metre (1 for omniscan's own models; about 18 for the
+    /// original Omni-Scan models).
+    pub units_per_metre: f64,
+    /// Point differencing threshold, millimetres (paper: 4.5).
+    pub threshold_mm: f64,
+    /// Views rendered of every model (paper: 100).
+    pub views: usize,
+    pub width: u32,
+    pub height: u32,
+    /// RGB L2 distance (0-1 channels) above which a pixel differs.
+    pub colour_threshold: f64,
+    /// Spacing of the surface samples, millimetres.
+    pub spacing_mm: f64,
+    pub min_geometric_area_mm2: f64,
+    pub min_visual_area_mm2: f64,
+    /// Indices of models known to be good; `None` = any model may be defective.
+    pub references: Option<Vec<usize>>,
+    pub align: AlignSettings,
+}
+
+impl Default for InspectSettings {
+    fn default() -> Self {
+        InspectSettings {
+            units_per_metre: 1.0,
+            threshold_mm: 4.5,
+            views: 100,
+            width: 160,
+            height: 120,
+            colour_threshold: 0.25,
+            spacing_mm: 1.0,
+            min_geometric_area_mm2: 6.0,
+            min_visual_area_mm2: 3.0,
+            references: None,
+            align: AlignSettings::default(),
+        }
+    }
+}
+
+/// Seconds spent per stage.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct Timings {
+    pub align: f64,
+    pub render: f64,
+    pub compare: f64,
+    pub total: f64,
+}
+
+/// Everything an inspection found, for the verdict file and the report.
+#[derive(Debug, Clone)]
+pub struct Inspection {
+    pub alignments: Vec<Alignment>,
+    pub views: Vec<View>,
+    /// Per model, its renders of every view (after alignment).
+    pub renders: Vec<Vec<ViewRender>>,
+    /// Per model, its visible surface in the reference frame.
+    pub surfaces: Vec<PointCloud>,
+    pub pixels: Vec<PixelComparison>,
+    pub pairs: Vec<PairEvidence>,
+    pub verdict: Verdict,
+    pub timings: Timings,
+}
+
+/// Views that fit the reference's robust box tightly in each image, so an
+/// elongated part is not drawn small in the middle of a square of background.
+fn framed_views(reference: &Splats, settings: &InspectSettings) -> Vec<View> {
+    let (centre, radius) = robust_bounds(reference);
+    let mut views = sphere_views(
+        &centre,
+        1.15 * radius,
+        settings.views,
+        settings.width,
+        settings.height,
+    );
+    let sigmoid = |x: f32| 1.0 / (1.0 + (-x).exp());
+    let opaque: Vec<nalgebra::Point3<f64>> = reference
+        .means
+        .iter()
+        .zip(&reference.opacity_logits)
+        .filter(|(_, o)| sigmoid(**o) > 0.1)
+        .map(|(m, _)| nalgebra::Point3::from(m.map(|v| v as f64)))
+        .step_by(7)
+        .collect();
+    for view in &mut views {
+        let world_to_camera = view.camera_to_world.inverse();
+        let mut spans: Vec<(f64, f64)> = opaque
+            .iter()
+            .filter_map(|p| {
+                let q = world_to_camera * p;
+                (q.z > 0.0).then(|| ((q.x / q.z).abs(), (q.y / q.z).abs()))
+            })
+            .collect();
+        if spans.len() < 10 {
+            continue;
+        }
+        // The 99th percentile: a stray floater must not shrink the part.
+        let percentile = |v: &mut Vec<f64>| {
+            v.sort_by(f64::total_cmp);
+            v[(v.len() * 99 / 100).min(v.len() - 1)]
+        };
+        let mut xs: Vec<f64> = spans.iter().map(|s| s.0).collect();
+        let mut ys: Vec<f64> = spans.drain(..).map(|s| s.1).collect();
+        let (sx, sy) = (percentile(&mut xs), percentile(&mut ys));
+        let k = &mut view.intrinsics;
+        let focal = (0.85 * k.cx / sx.max(1e-9)).min(0.85 * k.cy / sy.max(1e-9));
+        if focal.is_finite() && focal > k.fx {
+            k.fx = focal;
+            k.fy = focal;
+        }
+    }
+    views
+}
+
+/// Inspects `models` (at least three copies of one part); the first is the
+/// reference frame everything is aligned to.
+pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspection, InspectError> {
+    let start = Instant::now();
+    if models.len() < 3 {
+        return Err(InspectError::Invalid(format!(
+            "inspection needs at least three models (two good copies and one to check), got {}",
+            models.len()
+        )));
+    }
+    if !(settings.units_per_metre.is_finite() && settings.units_per_metre > 0.0) {
+        return Err(InspectError::Invalid(format!(
+            "units per metre must be positive, got {}",
+            settings.units_per_metre
+        )));
+    }
+    if !(settings.threshold_mm.is_finite() && settings.threshold_mm > 0.0) {
+        return Err(InspectError::Invalid(format!(
+            "the threshold must be positive, got {} mm",
+            settings.threshold_mm
+        )));
+    }
+    if settings.views == 0 || settings.width < 16 || settings.height < 16 {
+        return Err(InspectError::Invalid(
+            "need at least one view of at least 16x16 pixels".into(),
+        ));
+    }
+    let candidates: Vec<usize> = match &settings.references {
+        None => (0..models.len()).collect(),
+        Some(refs) => {
+            if refs.iter().any(|&r| r >= models.len()) || refs.len() < 2 {
+                return Err(InspectError::Invalid(
+                    "references must name at least two of the given models".into(),
+                ));
+            }
+            (0..models.len()).filter(|m| !refs.contains(m)).collect()
+        }
+    };
+    if candidates.is_empty() {
+        return Err(InspectError::Invalid(
+            "every model is a reference: nothing to inspect".into(),
+        ));
+    }
+    for (i, m) in models.iter().enumerate() {
+        m.validate()
+            .map_err(|e| InspectError::Invalid(format!("model {i}: {e}")))?;
+        if m.len() < 50 {
+            return Err(InspectError::Invalid(format!(
+                "model {i} has only {} splats",
+                m.len()
+            )));
+        }
+    }
+    let unit = settings.units_per_metre / 1000.0;
+    let (_, radius) = robust_bounds(&models[0]);
+    let size_m = 2.0 * radius / settings.units_per_metre;
+    if !(0.005..=1.0).contains(&size_m) {
+        tracing::warn!(
+            "the reference model spans about {size_m:.3} m at {} units per metre: \
+             is --units-per-metre right?",
+            settings.units_per_metre
+        );
+    }
+
+    // Alignment of every model to the first.
+    let points: Vec<PointCloud> = models
+        .par_iter()
+        .map(|m| model_points(m, &settings.align.filter))
+        .collect();
+    for (i, p) in points.iter().enumerate() {
+        if p.len() < 30 {
+            return Err(InspectError::Invalid(format!(
+                "model {i}: only {} splats pass the opacity/size filter",
+                p.len()
+            )));
+        }
+    }
+    let views = framed_views(&models[0], settings);
+    let (centre, radius) = robust_bounds(&models[0]);
+    let twin_views = sphere_views(&centre, 1.15 * radius, 16, 96, 72);
+    let twin_reference = render_views(&models[0], &twin_views);
+    let mut alignments = vec![Alignment::identity()];
+    for i in 1..models.len() {
+        let a = align_model(
+            &models[i],
+            &points[i],
+            &points[0],
+            &twin_views,
+            &twin_reference,
+            &settings.align,
+        )?;
+        if a.fitness < settings.align.min_fitness {
+            return Err(InspectError::Alignment {
+                model: format!("model {i}"),
+                reference: "model 0".into(),
+                fitness: a.fitness,
+                min_fitness: settings.align.min_fitness,
+            });
+        }
+        alignments.push(a);
+    }
+    let align_done = Instant::now();
+
+    let aligned: Vec<Splats> = models
+        .iter()
+        .zip(&alignments)
+        .map(|(m, a)| {
+            if a.method == "identity" {
+                Ok(m.clone())
+            } else {
+                m.transformed(&a.transform, 1.0)
+            }
+        })
+        .collect::<Result<_, _>>()?;
+    let renders: Vec<Vec<ViewRender>> = aligned.iter().map(|m| render_views(m, &views)).collect();
+    let spacing = settings.spacing_mm * unit;
+    let surfaces: Vec<PointCloud> = renders
+        .par_iter()
+        .map(|r| surface_points(r, &views, spacing))
+        .collect();
+    let render_done = Instant::now();
+
+    let threshold = settings.threshold_mm * unit;
+    let visual = VisualSettings {
+        colour_threshold: settings.colour_threshold,
+        depth_tolerance: threshold,
+        voxel: spacing,
+        agreement: 0.5,
+        min_views: 2,
+    };
+    let mut pixels = Vec::new();
+    let mut pairs = Vec::new();
+    for a in 0..models.len() {
+        for b in a + 1..models.len() {
+            pixels.push(compare_pixels(a, b, &renders[a], &renders[b]));
+            pairs.push(PairEvidence {
+                a,
+                b,
+                geometric: geometric_evidence(&surfaces[a], &surfaces[b], threshold),
+                visual: visual_evidence(&renders[a], &renders[b], &views, &visual),
+            });
+        }
+    }
+    let verdict = decide(
+        models.len(),
+        &candidates,
+        &pairs,
+        &pixels,
+        &VerdictSettings {
+            spacing,
+            units_per_metre: settings.units_per_metre,
+            match_radius: 3.0 * spacing,
+            min_geometric_area_mm2: settings.min_geometric_area_mm2,
+            min_visual_area_mm2: settings.min_visual_area_mm2,
+        },
+    );
+    let end = Instant::now();
+    Ok(Inspection {
+        alignments,
+        views,
+        renders,
+        surfaces,
+        pixels,
+        pairs,
+        verdict,
+        timings: Timings {
+            align: (align_done - start).as_secs_f64(),
+            render: (render_done - align_done).as_secs_f64(),
+            compare: (end - render_done).as_secs_f64(),
+            total: (end - start).as_secs_f64(),
+        },
+    })
+}

@@ -1,0 +1,400 @@
+//! From pairwise evidence to a verdict.
+//!
+//! A difference between two copies says that one of them is odd there, not
+//! which. With three or more copies it can be told: a spot belongs to model
+//! M when M differs there from every other copy while no two of the other
+//! copies differ there. Each kind of evidence (geometric from point
+//! differencing, visual from pixel differencing) is attributed that way,
+//! attributed points are clustered (DBSCAN) into regions, and regions
+//! smaller than a minimum area are dropped as noise. The defective model is
+//! the one with the largest significant area; none is named when no model
+//! has a significant region. Visual regions inside a geometric region of the
+//! same model are part of it (a dent also shades differently). The paper's
+//! rule (the pair with the smallest mean pixel distance is the good pair)
+//! is reported beside the verdict, and only breaks exact ties.
+
+use nalgebra::Point3;
+use serde::Serialize;
+
+use omniscan_register::PointCloud;
+use omniscan_register::neighbors::Neighbors;
+use omniscan_register::preprocess::dbscan;
+
+use crate::differencing::{Evidence, PixelComparison};
+
+/// Evidence of one pair of models.
+#[derive(Debug, Clone, Default)]
+pub struct PairEvidence {
+    pub a: usize,
+    pub b: usize,
+    pub geometric: Evidence,
+    pub visual: Evidence,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Kind {
+    Geometric,
+    Visual,
+}
+
+/// A cluster of defect evidence on one model.
+#[derive(Debug, Clone, Serialize)]
+pub struct Region {
+    pub model: usize,
+    pub kind: Kind,
+    /// Centre in the reference model's frame and units.
+    pub centroid: [f64; 3],
+    /// Largest distance between two of its points, millimetres.
+    pub extent_mm: f64,
+    /// Surface area covered, square millimetres.
+    pub area_mm2: f64,
+    pub points: usize,
+    /// Mean distance to the other copies' surfaces (mm) for geometric
+    /// regions, mean RGB distance for visual ones.
+    pub mean_difference: f64,
+    /// Whether the region is over the minimum area for its kind.
+    pub significant: bool,
+}
+
+/// Thresholds of the verdict.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct VerdictSettings {
+    /// Surface sample spacing (model units).
+    pub spacing: f64,
+    pub units_per_metre: f64,
+    /// Attributed points must have the other pairs' evidence within this (model units).
+    pub match_radius: f64,
+    pub min_geometric_area_mm2: f64,
+    pub min_visual_area_mm2: f64,
+}
+
+/// The outcome.
+#[derive(Debug, Clone, Serialize)]
+pub struct Verdict {
+    pub defective: Option<usize>,
+    /// `geometric`, `visual` or `both`; `none` with no defective model.
+    pub defect_type: String,
+    /// Significant area of the defective model (mm²), the verdict's score.
+    pub score: f64,
+    /// Significant area per model (mm²), geometric and visual.
+    pub geometric_area_mm2: Vec<f64>,
+    pub visual_area_mm2: Vec<f64>,
+    pub regions: Vec<Region>,
+    /// The model left out of the pair with the smallest mean pixel distance (paper's rule).
+    pub pixel_rule_odd_one: Option<usize>,
+}
+
+fn evidence_of(pairs: &[PairEvidence], kind: Kind, i: usize) -> &Evidence {
+    match kind {
+        Kind::Geometric => &pairs[i].geometric,
+        Kind::Visual => &pairs[i].visual,
+    }
+}
+
+/// Points of `model`'s pairs that every other pair with `model` confirms
+/// and no pair without it shows.
+fn attributed(pairs: &[PairEvidence], model: usize, kind: Kind, radius: f64) -> Evidence {
+    let with: Vec<usize> = (0..pairs.len())
+        .filter(|&i| pairs[i].a == model || pairs[i].b == model)
+        .collect();
+    let without: Vec<usize> = (0..pairs.len()).filter(|i| !with.contains(i)).collect();
+    let trees: Vec<Option<Neighbors>> = (0..pairs.len())
+        .map(|i| {
+            let e = evidence_of(pairs, kind, i);
+            (!e.is_empty()).then(|| Neighbors::new(&e.points))
+        })
+        .collect();
+    let near = |i: usize, p: &Point3<f64>| {
+        trees[i]
+            .as_ref()
+            .and_then(|t| t.nearest_within(p, radius))
+            .is_some()
+    };
+    let mut out = Evidence::default();
+    let mut seen: Vec<Point3<f64>> = Vec::new();
+    for &i in &with {
+        let e = evidence_of(pairs, kind, i);
+        for (p, m) in e.points.iter().zip(&e.magnitude) {
+            let confirmed = with.iter().all(|&j| j == i || near(j, p));
+            let contradicted = without.iter().any(|&j| near(j, p));
+            if confirmed && !contradicted {
+                seen.push(*p);
+                out.points.push(*p);
+                out.magnitude.push(*m);
+            }
+        }
+        // One pair's points are enough: the others would only repeat them.
+        if !out.is_empty() {
+            break;
+        }
+    }
+    out
+}
+
+fn cluster(
+    evidence: &Evidence,
+    model: usize,
+    kind: Kind,
+    settings: &VerdictSettings,
+) -> Vec<Region> {
+    if evidence.is_empty() {
+        return Vec::new();
+    }
+    let cloud = PointCloud {
+        points: evidence.points.clone(),
+        ..Default::default()
+    };
+    let labels = dbscan(&cloud, 2.5 * settings.spacing, 3);
+    let clusters = labels.iter().copied().max().unwrap_or(-1) + 1;
+    let mm = 1000.0 / settings.units_per_metre;
+    let point_area = (settings.spacing * mm).powi(2);
+    (0..clusters)
+        .filter_map(|c| {
+            let members: Vec<usize> = (0..labels.len()).filter(|&i| labels[i] == c).collect();
+            if members.is_empty() {
+                return None;
+            }
+            let centroid = members.iter().fold(nalgebra::Vector3::zeros(), |s, &i| {
+                s + evidence.points[i].coords
+            }) / members.len() as f64;
+            let mut extent: f64 = 0.0;
+            for (k, &i) in members.iter().enumerate() {
+                for &j in &members[k + 1..] {
+                    extent = extent.max((evidence.points[i] - evidence.points[j]).norm());
+                }
+            }
+            let mean =
+                members.iter().map(|&i| evidence.magnitude[i]).sum::<f64>() / members.len() as f64;
+            let area = members.len() as f64 * point_area;
+            let minimum = match kind {
+                Kind::Geometric => settings.min_geometric_area_mm2,
+                Kind::Visual => settings.min_visual_area_mm2,
+            };
+            Some(Region {
+                model,
+                kind,
+                centroid: [centroid.x, centroid.y, centroid.z],
+                extent_mm: extent * mm,
+                area_mm2: area,
+                points: members.len(),
+                mean_difference: match kind {
+                    Kind::Geometric => mean * mm,
+                    Kind::Visual => mean,
+                },
+                significant: area >= minimum,
+            })
+        })
+        .collect()
+}
+
+/// Decides which of `models` models is defective. `candidates` are the
+/// models that may be named (all, or those not given as references).
+pub fn decide(
+    models: usize,
+    candidates: &[usize],
+    pairs: &[PairEvidence],
+    pixels: &[PixelComparison],
+    settings: &VerdictSettings,
+) -> Verdict {
+    let mut regions = Vec::new();
+    let mut geometric_area = vec![0.0; models];
+    let mut visual_area = vec![0.0; models];
+    for &m in candidates {
+        let geometric = cluster(
+            &attributed(pairs, m, Kind::Geometric, settings.match_radius),
+            m,
+            Kind::Geometric,
+            settings,
+        );
+        let mut visual = cluster(
+            &attributed(pairs, m, Kind::Visual, settings.match_radius),
+            m,
+            Kind::Visual,
+            settings,
+        );
+        // A visual difference inside a geometric region is part of it.
+        let mm = 1000.0 / settings.units_per_metre;
+        visual.retain(|v| {
+            !geometric.iter().any(|g| {
+                g.significant
+                    && (Point3::from(g.centroid) - Point3::from(v.centroid)).norm() * mm
+                        <= 0.5 * g.extent_mm + 0.5 * v.extent_mm
+            })
+        });
+        geometric_area[m] = geometric
+            .iter()
+            .filter(|r| r.significant)
+            .map(|r| r.area_mm2)
+            .sum();
+        visual_area[m] = visual
+            .iter()
+            .filter(|r| r.significant)
+            .map(|r| r.area_mm2)
+            .sum();
+        regions.extend(geometric);
+        regions.extend(visual);
+    }
+    regions.sort_by(|a, b| {
+        b.significant
+            .cmp(&a.significant)
+            .then(b.area_mm2.total_cmp(&a.area_mm2))
+    });
+    // Paper's rule: the pair with the smallest mean pixel distance is good.
+    let pixel_rule_odd_one = (models == 3)
+        .then(|| {
+            pixels
+                .iter()
+                .min_by(|a, b| a.mean_l2.total_cmp(&b.mean_l2))
+                .map(|p| 3 - p.a - p.b)
+        })
+        .flatten();
+    let total = |m: usize| geometric_area[m] + visual_area[m];
+    let mut defective: Option<usize> = None;
+    for &m in candidates {
+        if total(m) <= 0.0 {
+            continue;
+        }
+        defective = match defective {
+            None => Some(m),
+            Some(d) if total(m) > total(d) => Some(m),
+            Some(d) if total(m) == total(d) && pixel_rule_odd_one == Some(m) => Some(m),
+            keep => keep,
+        };
+    }
+    let defect_type = match defective {
+        None => "none",
+        Some(d) => match (geometric_area[d] > 0.0, visual_area[d] > 0.0) {
+            (true, true) => "both",
+            (true, false) => "geometric",
+            _ => "visual",
+        },
+    }
+    .to_string();
+    Verdict {
+        defective,
+        defect_type,
+        score: defective.map_or(0.0, total),
+        geometric_area_mm2: geometric_area,
+        visual_area_mm2: visual_area,
+        regions,
+        pixel_rule_odd_one,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn patch(centre: [f64; 3], side: usize, spacing: f64) -> Evidence {
+        let mut e = Evidence::default();
+        for i in 0..side * side {
+            e.points.push(Point3::new(
+                centre[0] + (i % side) as f64 * spacing,
+                centre[1] + (i / side) as f64 * spacing,
+                centre[2],
+            ));
+            e.magnitude.push(0.006);
+        }
+        e
+    }
+
+    fn settings() -> VerdictSettings {
+        VerdictSettings {
+            spacing: 0.001,
+            units_per_metre: 1.0,
+            match_radius: 0.003,
+            min_geometric_area_mm2: 4.0,
+            min_visual_area_mm2: 2.0,
+        }
+    }
+
+    #[test]
+    fn the_model_that_differs_from_both_others_is_defective() {
+        // Model 2 has a 6x6 mm bump: pairs (0,2) and (1,2) show it; a small
+        // noise spot shows between 0 and 1 only.
+        let bump = patch([0.0, 0.0, 0.0], 6, 0.001);
+        let pairs = vec![
+            PairEvidence {
+                a: 0,
+                b: 1,
+                geometric: patch([0.05, 0.0, 0.0], 2, 0.001),
+                ..Default::default()
+            },
+            PairEvidence {
+                a: 0,
+                b: 2,
+                geometric: bump.clone(),
+                ..Default::default()
+            },
+            PairEvidence {
+                a: 1,
+                b: 2,
+                geometric: bump,
+                ..Default::default()
+            },
+        ];
+        let v = decide(3, &[0, 1, 2], &pairs, &[], &settings());
+        assert_eq!(v.defective, Some(2));
+        assert_eq!(v.defect_type, "geometric");
+        assert!((v.score - 36.0).abs() < 1e-9, "{}", v.score);
+        let r = &v.regions[0];
+        assert_eq!(r.model, 2);
+        assert!(r.significant);
+        assert!((r.extent_mm - (50f64).sqrt()).abs() < 1e-6);
+    }
+
+    #[test]
+    fn agreeing_copies_give_no_defect() {
+        let noise = patch([0.0, 0.0, 0.0], 1, 0.001);
+        let pairs = vec![
+            PairEvidence {
+                a: 0,
+                b: 1,
+                visual: noise.clone(),
+                ..Default::default()
+            },
+            PairEvidence {
+                a: 0,
+                b: 2,
+                ..Default::default()
+            },
+            PairEvidence {
+                a: 1,
+                b: 2,
+                visual: noise,
+                ..Default::default()
+            },
+        ];
+        let v = decide(3, &[0, 1, 2], &pairs, &[], &settings());
+        assert_eq!(v.defective, None);
+        assert_eq!(v.defect_type, "none");
+    }
+
+    #[test]
+    fn a_difference_the_good_pair_also_shows_is_not_attributed() {
+        let spot = patch([0.0, 0.0, 0.0], 5, 0.001);
+        let pairs = vec![
+            PairEvidence {
+                a: 0,
+                b: 1,
+                visual: spot.clone(),
+                ..Default::default()
+            },
+            PairEvidence {
+                a: 0,
+                b: 2,
+                visual: spot.clone(),
+                ..Default::default()
+            },
+            PairEvidence {
+                a: 1,
+                b: 2,
+                visual: spot,
+                ..Default::default()
+            },
+        ];
+        let v = decide(3, &[0, 1, 2], &pairs, &[], &settings());
+        assert_eq!(v.defective, None);
+    }
+}

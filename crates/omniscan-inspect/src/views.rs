@@ -1,0 +1,232 @@
+//! The shared viewpoints of an inspection and what each model looks like
+//! from them: K cameras spread evenly over a sphere around the reference
+//! model (a Fibonacci lattice, so no direction is favoured), the renders of
+//! every aligned model from those cameras, and the model's visible surface
+//! sampled from the renders.
+//!
+//! Sampling the surface from renders rather than taking splat centres is
+//! what keeps two good copies from disagreeing: trained models hold faint
+//! floaters and Gaussians deep inside the object (paper, "Limitations"),
+//! but neither survives compositing into an opaque pixel's depth.
+
+use nalgebra::{Point3, Vector3};
+use rayon::prelude::*;
+
+use omniscan_core::geometry::look_at;
+use omniscan_core::{Intrinsics, Pose};
+use omniscan_register::PointCloud;
+use omniscan_register::preprocess::voxel_downsample;
+use omniscan_splat::Splats;
+use omniscan_splat::raster::{Camera, Settings, render};
+
+/// One viewpoint: where the camera is (camera-to-world, OpenCV axes) and its pinhole.
+#[derive(Debug, Clone)]
+pub struct View {
+    pub camera_to_world: Pose,
+    pub intrinsics: Intrinsics,
+    /// Clipping distances along the optical axis (model units).
+    pub near: f64,
+    pub far: f64,
+}
+
+impl View {
+    pub fn camera(&self) -> Camera<f32> {
+        Camera {
+            near: self.near as f32,
+            far: self.far as f32,
+            ..Camera::from_pose(&self.camera_to_world, &self.intrinsics)
+        }
+    }
+}
+
+/// `count` views on a sphere around `centre`, far enough that a ball of
+/// `radius` fills about 90% of the shorter image side.
+pub fn sphere_views(
+    centre: &Point3<f64>,
+    radius: f64,
+    count: usize,
+    width: u32,
+    height: u32,
+) -> Vec<View> {
+    let half_fov = 25f64.to_radians();
+    let focal = 0.5 * width.min(height) as f64 / half_fov.tan();
+    let distance = radius / (0.9 * half_fov).sin();
+    let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+    (0..count)
+        .map(|i| {
+            let z = 1.0 - 2.0 * (i as f64 + 0.5) / count as f64;
+            let r = (1.0 - z * z).max(0.0).sqrt();
+            let direction = Vector3::new(
+                r * (golden * i as f64).cos(),
+                r * (golden * i as f64).sin(),
+                z,
+            );
+            let eye = centre + distance * direction;
+            let up = if direction.z.abs() > 0.9 {
+                Vector3::x()
+            } else {
+                Vector3::z()
+            };
+            View {
+                camera_to_world: look_at(&eye, centre, &up),
+                intrinsics: Intrinsics {
+                    width,
+                    height,
+                    fx: focal,
+                    fy: focal,
+                    cx: width as f64 * 0.5,
+                    cy: height as f64 * 0.5,
+                },
+                near: 0.01 * distance,
+                far: 100.0 * distance,
+            }
+        })
+        .collect()
+}
+
+/// A model rendered from one view on a black background.
+#[derive(Debug, Clone)]
+pub struct ViewRender {
+    pub width: u32,
+    pub height: u32,
+    pub rgb: Vec<[f32; 3]>,
+    pub alpha: Vec<f32>,
+    /// Expected depth along the optical axis (model units); 0 where nothing was drawn.
+    pub depth: Vec<f32>,
+}
+
+impl ViewRender {
+    /// Depth of pixel `i` if it is opaque enough to count as surface.
+    pub fn surface_depth(&self, i: usize, min_alpha: f32) -> Option<f32> {
+        (self.alpha[i] >= min_alpha && self.depth[i] > 0.0).then_some(self.depth[i])
+    }
+}
+
+/// Renders `model` from every view.
+pub fn render_views(model: &Splats, views: &[View]) -> Vec<ViewRender> {
+    let gaussians = model.gaussians::<f32>();
+    let settings = Settings {
+        mode: model.render_mode(),
+        ..Settings::default()
+    };
+    views
+        .par_iter()
+        .map(|view| {
+            let camera = view.camera();
+            let (_, r) = render(&gaussians, &camera, &settings);
+            let depth = r
+                .depth
+                .iter()
+                .zip(&r.alpha)
+                .map(|(&d, &a)| if a > 1e-3 { d / a } else { 0.0 })
+                .collect();
+            ViewRender {
+                width: r.width,
+                height: r.height,
+                rgb: r.rgb,
+                alpha: r.alpha,
+                depth,
+            }
+        })
+        .collect()
+}
+
+/// Pixels at least this opaque are surface.
+pub const SURFACE_ALPHA: f32 = 0.9;
+
+/// Back-projects pixel `(x, y)` of `view` at `depth` into the world.
+pub fn back_project(view: &View, x: u32, y: u32, depth: f64) -> Point3<f64> {
+    let k = &view.intrinsics;
+    let p = Point3::new(
+        (x as f64 + 0.5 - k.cx) / k.fx * depth,
+        (y as f64 + 0.5 - k.cy) / k.fy * depth,
+        depth,
+    );
+    view.camera_to_world * p
+}
+
+/// Whether pixel `i`'s depth agrees with its four neighbours: pixels on a
+/// depth edge blend two surfaces into a point on neither.
+pub fn smooth_depth(render: &ViewRender, view: &View, i: usize) -> bool {
+    let (w, h) = (render.width as usize, render.height as usize);
+    let (x, y) = (i % w, i / w);
+    let z = render.depth[i];
+    // Neighbouring samples on a surface tilted up to ~80° from the view.
+    let tolerance = 6.0 * z / view.intrinsics.fx as f32;
+    let neighbours = [
+        (x > 0).then(|| i - 1),
+        (x + 1 < w).then(|| i + 1),
+        (y > 0).then(|| i - w),
+        (y + 1 < h).then(|| i + w),
+    ];
+    neighbours
+        .into_iter()
+        .flatten()
+        .all(|j| render.alpha[j] >= 0.5 && (render.depth[j] - z).abs() <= tolerance)
+}
+
+/// The visible surface of a model: opaque, depth-smooth pixels of every
+/// render back-projected, with their rendered colour, thinned to one point
+/// per `spacing` voxel.
+pub fn surface_points(renders: &[ViewRender], views: &[View], spacing: f64) -> PointCloud {
+    let per_view: Vec<PointCloud> = renders
+        .par_iter()
+        .zip(views)
+        .map(|(r, view)| {
+            let mut cloud = PointCloud::default();
+            for i in 0..r.alpha.len() {
+                let Some(z) = r.surface_depth(i, SURFACE_ALPHA) else {
+                    continue;
+                };
+                if !smooth_depth(r, view, i) {
+                    continue;
+                }
+                let (x, y) = ((i % r.width as usize) as u32, (i / r.width as usize) as u32);
+                cloud.points.push(back_project(view, x, y, z as f64));
+                cloud.colors.push(r.rgb[i]);
+            }
+            cloud
+        })
+        .collect();
+    let mut all = PointCloud::default();
+    for c in &per_view {
+        all.extend(c);
+    }
+    if all.is_empty() {
+        return all;
+    }
+    voxel_downsample(&all, spacing)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sphere_views_look_at_the_centre_from_all_around() {
+        let centre = Point3::new(0.1, -0.2, 0.3);
+        let views = sphere_views(&centre, 0.05, 50, 64, 48);
+        let mut mean = Vector3::zeros();
+        for v in &views {
+            let eye = v.camera_to_world.translation.vector;
+            let forward = v.camera_to_world.rotation * Vector3::z();
+            let to_centre = (centre.coords - eye).normalize();
+            assert!((forward - to_centre).norm() < 1e-9);
+            mean += (eye - centre.coords).normalize();
+        }
+        // Evenly spread: the mean direction nearly cancels.
+        assert!(mean.norm() / 50.0 < 0.05, "{}", mean.norm() / 50.0);
+    }
+
+    #[test]
+    fn back_projection_inverts_projection() {
+        let views = sphere_views(&Point3::origin(), 1.0, 3, 40, 30);
+        let v = &views[1];
+        let p = back_project(v, 7, 21, 2.5);
+        let local = v.camera_to_world.inverse() * p;
+        let k = &v.intrinsics;
+        assert!((local.z - 2.5).abs() < 1e-12);
+        assert!((k.fx * local.x / local.z + k.cx - 7.5).abs() < 1e-9);
+        assert!((k.fy * local.y / local.z + k.cy - 21.5).abs() < 1e-9);
+    }
+}

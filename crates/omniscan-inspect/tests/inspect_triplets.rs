@@ -1,0 +1,179 @@
+//! End-to-end inspection of generated triplets of a procedural part: the
+//! truth (which copy, what kind, where) comes from the defect generator.
+
+use nalgebra::Point3;
+
+use omniscan_inspect::generate::{CopySettings, DefectKind, good_copy, plant_defect, test_part};
+use omniscan_inspect::report::write_report;
+use omniscan_inspect::{InspectSettings, inspect};
+use omniscan_splat::Splats;
+
+fn settings() -> InspectSettings {
+    InspectSettings {
+        views: 40,
+        width: 128,
+        height: 96,
+        ..InspectSettings::default()
+    }
+}
+
+/// Three copies of the part, the one at `slot` with `defect`; returns the
+/// copies and the defect centre in the first copy's frame.
+fn triplet(
+    defect: Option<(DefectKind, f64)>,
+    slot: usize,
+    seed: u64,
+) -> (Vec<Splats>, Option<Point3<f64>>) {
+    let part = test_part([0.06, 0.04, 0.025], 0.0012);
+    let mut copies = Vec::new();
+    let mut centre = None;
+    let mut first_pose = None;
+    for k in 0..3 {
+        let (base, planted) = match defect {
+            Some((kind, size)) if k == slot => {
+                let (m, d) = plant_defect(&part, kind, size, 1.0, seed).unwrap();
+                (m, Some(d))
+            }
+            _ => (part.clone(), None),
+        };
+        let (copy, pose) = good_copy(
+            &base,
+            1.0,
+            &CopySettings {
+                seed: seed * 10 + k as u64,
+                ..CopySettings::default()
+            },
+        )
+        .unwrap();
+        if k == 0 {
+            first_pose = Some(pose);
+        }
+        if let Some(d) = planted {
+            centre = Some(Point3::from(d.centre));
+        }
+        copies.push(copy);
+    }
+    let centre = centre.map(|c| first_pose.unwrap() * c);
+    (copies, centre)
+}
+
+fn located(
+    inspection: &omniscan_inspect::Inspection,
+    model: usize,
+    centre: &Point3<f64>,
+    size_mm: f64,
+) -> bool {
+    inspection
+        .verdict
+        .regions
+        .iter()
+        .filter(|r| r.significant && r.model == model)
+        .any(|r| (Point3::from(r.centroid) - centre).norm() * 1000.0 <= 0.5 * r.extent_mm + size_mm)
+}
+
+#[test]
+fn a_bump_is_found_on_the_right_copy_and_in_the_right_place() {
+    let (copies, centre) = triplet(Some((DefectKind::Bump, 6.0)), 2, 1);
+    let result = inspect(&copies, &settings()).unwrap();
+    for a in &result.alignments {
+        assert!(a.fitness > 0.9, "alignment fitness {}", a.fitness);
+    }
+    assert_eq!(result.verdict.defective, Some(2), "{:#?}", result.verdict);
+    assert_eq!(result.verdict.defect_type, "geometric");
+    assert!(
+        located(&result, 2, &centre.unwrap(), 6.0),
+        "{:#?}",
+        result.verdict.regions
+    );
+}
+
+#[test]
+fn tape_is_a_visual_defect() {
+    let (copies, centre) = triplet(Some((DefectKind::Tape, 8.0)), 0, 2);
+    let result = inspect(&copies, &settings()).unwrap();
+    assert_eq!(result.verdict.defective, Some(0), "{:#?}", result.verdict);
+    assert_eq!(result.verdict.defect_type, "visual");
+    assert!(located(&result, 0, &centre.unwrap(), 8.0));
+}
+
+#[test]
+fn good_copies_give_no_verdict_and_references_restrict_the_candidates() {
+    let (copies, _) = triplet(None, 0, 3);
+    let result = inspect(&copies, &settings()).unwrap();
+    assert_eq!(
+        result.verdict.defective, None,
+        "{:#?}",
+        result.verdict.regions
+    );
+    assert_eq!(result.verdict.defect_type, "none");
+
+    // With references, only the other model can be named.
+    let (copies, _) = triplet(Some((DefectKind::Remove, 7.0)), 1, 4);
+    let with_refs = InspectSettings {
+        references: Some(vec![0, 2]),
+        ..settings()
+    };
+    let result = inspect(&copies, &with_refs).unwrap();
+    assert_eq!(result.verdict.defective, Some(1));
+    assert!(result.verdict.regions.iter().all(|r| r.model == 1));
+}
+
+#[test]
+fn the_report_has_every_output() {
+    let (copies, _) = triplet(Some((DefectKind::Recolour, 8.0)), 1, 5);
+    let result = inspect(&copies, &settings()).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let names: Vec<std::path::PathBuf> =
+        ["a.ply", "b.ply", "c.ply"].iter().map(Into::into).collect();
+    write_report(dir.path(), &result, &names, &settings()).unwrap();
+    let verdict: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("verdict.json")).unwrap())
+            .unwrap();
+    assert_eq!(verdict["defective"], "b.ply");
+    assert_eq!(verdict["type"], "visual");
+    assert!(verdict["regions"].as_array().unwrap().len() >= 1);
+    assert_eq!(verdict["alignment"].as_array().unwrap().len(), 3);
+    assert!(verdict["alignment"][1]["fitness"].as_f64().unwrap() > 0.9);
+    let html = std::fs::read_to_string(dir.path().join("report.html")).unwrap();
+    assert!(html.contains("b.ply") && html.contains("defects.png"));
+    let pngs = std::fs::read_dir(dir.path())
+        .unwrap()
+        .filter(|e| {
+            e.as_ref()
+                .unwrap()
+                .file_name()
+                .to_string_lossy()
+                .starts_with("diff_")
+        })
+        .count();
+    assert_eq!(
+        pngs, 8,
+        "four views for each of the two pairs with the defective model"
+    );
+    let cloud = omniscan_register::cloud::read_cloud(&dir.path().join("defects.ply")).unwrap();
+    let red = cloud
+        .colors
+        .iter()
+        .filter(|c| c[0] > 0.5 && c[1] < 0.5)
+        .count();
+    assert!(red > 0 && red < cloud.len() / 5, "{red} of {}", cloud.len());
+}
+
+#[test]
+fn bad_input_is_an_error_not_a_panic() {
+    let (copies, _) = triplet(None, 0, 6);
+    assert!(inspect(&copies[..2], &settings()).is_err());
+    let mut nan = copies.clone();
+    nan[1].means[3][0] = f32::NAN;
+    assert!(inspect(&nan, &settings()).is_err());
+    let bad_units = InspectSettings {
+        units_per_metre: 0.0,
+        ..settings()
+    };
+    assert!(inspect(&copies, &bad_units).is_err());
+    let bad_refs = InspectSettings {
+        references: Some(vec![0, 7]),
+        ..settings()
+    };
+    assert!(inspect(&copies, &bad_refs).is_err());
+}
