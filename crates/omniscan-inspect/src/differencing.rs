@@ -6,25 +6,24 @@
 //! the pixels either model covers. For locating a visual defect each pixel's
 //! difference tolerates a one-pixel shift (the smaller distance to the other
 //! render's 3x3 neighbourhood, taken both ways), pixels where the two depths
-//! disagree are left to the geometric test, and what remains is
-//! back-projected onto the surface and kept only where most views that see
-//! the spot agree it differs: a real mark is seen from many views, a
-//! rendering artefact from one.
+//! disagree are left to the geometric test. To locate a visual defect the
+//! renders' colours are carried onto the surface samples (each the average
+//! of every pixel that landed on it, over all views) and compared there with
+//! the same kind of tolerance: a surface point differs when no point of the
+//! other model near it has a similar colour.
 //!
 //! Point differencing: for each surface point of one model the distance to
 //! the nearest surface point of the other; points farther than the
 //! threshold (4.5 mm by default, paper) are defect points, both ways.
 
-use std::collections::HashMap;
-
-use nalgebra::{Point3, Vector3};
+use nalgebra::Point3;
 use rayon::prelude::*;
 use serde::Serialize;
 
 use omniscan_register::PointCloud;
 use omniscan_register::neighbors::Neighbors;
 
-use crate::views::{SURFACE_ALPHA, View, ViewRender, back_project, smooth_depth};
+use crate::views::ViewRender;
 
 /// The paper's pixel comparison of one pair.
 #[derive(Debug, Clone, Serialize)]
@@ -123,101 +122,47 @@ impl Evidence {
     }
 }
 
-/// Settings of visual evidence.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct VisualSettings {
-    /// RGB L2 distance (0-1 channels) above which a pixel differs.
-    pub colour_threshold: f64,
-    /// Depths further apart than this (model units) are a geometric difference, not a visual one.
-    pub depth_tolerance: f64,
-    /// Voxel on the surface over which views vote (model units).
-    pub voxel: f64,
-    /// Share of the views seeing a voxel that must find it different.
-    pub agreement: f64,
-    /// Views that must find it different.
-    pub min_views: u32,
-}
-
-#[derive(Default, Clone, Copy)]
-struct Vote {
-    seen: u32,
-    flagged: u32,
-    sum: Vector3<f64>,
-    difference: f64,
-}
-
-/// Visual differences between two models, located on the surface.
+/// Visual differences between two models' coloured surfaces: a surface
+/// point of one differs when its colour is farther than `colour_threshold`
+/// (RGB L2, 0-1 channels) from the colour of every surface point of the
+/// other within `radius`; points with no such neighbour are the geometric
+/// test's business. Each surface point's colour is the average of every
+/// rendered pixel that landed on it, so one view's artefact is diluted, and
+/// the tolerance of `radius` forgives texture edges shifted by resampling.
 pub fn visual_evidence(
-    renders_a: &[ViewRender],
-    renders_b: &[ViewRender],
-    views: &[View],
-    settings: &VisualSettings,
+    a: &PointCloud,
+    b: &PointCloud,
+    radius: f64,
+    colour_threshold: f64,
 ) -> Evidence {
-    let per_view: Vec<HashMap<[i64; 3], Vote>> = renders_a
-        .par_iter()
-        .zip(renders_b)
-        .zip(views)
-        .map(|((ra, rb), view)| {
-            let mut votes: HashMap<[i64; 3], Vote> = HashMap::new();
-            let diff = difference_map(ra, rb);
-            for i in 0..ra.alpha.len() {
-                let (Some(za), Some(zb)) = (
-                    ra.surface_depth(i, SURFACE_ALPHA),
-                    rb.surface_depth(i, SURFACE_ALPHA),
-                ) else {
-                    continue;
-                };
-                if ((za - zb) as f64).abs() > settings.depth_tolerance || !smooth_depth(ra, view, i)
-                {
-                    continue;
+    let mut evidence = Evidence::default();
+    for (from, to) in [(a, b), (b, a)] {
+        if from.is_empty() || to.is_empty() || !from.has_colors() || !to.has_colors() {
+            continue;
+        }
+        let tree = Neighbors::new(&to.points);
+        let flagged: Vec<Option<f64>> = from
+            .points
+            .par_iter()
+            .zip(&from.colors)
+            .map(|(p, c)| {
+                let near = tree.within(p, radius);
+                if near.is_empty() {
+                    return None;
                 }
-                let (x, y) = (
-                    (i % ra.width as usize) as u32,
-                    (i / ra.width as usize) as u32,
-                );
-                let p = back_project(view, x, y, za as f64);
-                let key = p.coords.map(|c| (c / settings.voxel).floor() as i64);
-                let vote = votes.entry([key.x, key.y, key.z]).or_default();
-                // One vote per view and voxel, however many pixels land in it.
-                vote.seen = 1;
-                if diff[i] as f64 > settings.colour_threshold {
-                    vote.flagged = 1;
-                    vote.sum += p.coords;
-                    vote.difference = vote.difference.max(diff[i] as f64);
-                }
-            }
-            votes
-        })
-        .collect();
-    let mut votes: HashMap<[i64; 3], (Vote, u32)> = HashMap::new();
-    for map in per_view {
-        for (key, v) in map {
-            let (total, flagged_pixels) = votes.entry(key).or_default();
-            total.seen += v.seen;
-            total.flagged += v.flagged;
-            total.sum += v.sum;
-            total.difference += v.difference;
-            if v.flagged > 0 {
-                *flagged_pixels += 1;
+                let best = near
+                    .iter()
+                    .map(|&(j, _)| rgb_distance(*c, to.colors[j]) as f64)
+                    .fold(f64::INFINITY, f64::min);
+                (best > colour_threshold).then_some(best)
+            })
+            .collect();
+        for (p, f) in from.points.iter().zip(flagged) {
+            if let Some(d) = f {
+                evidence.points.push(*p);
+                evidence.magnitude.push(d);
             }
         }
-    }
-    let mut keys: Vec<_> = votes
-        .into_iter()
-        .filter(|(_, (v, _))| {
-            v.flagged >= settings.min_views
-                && v.flagged as f64 >= settings.agreement * v.seen as f64
-        })
-        .collect();
-    // Deterministic order whatever the hash map's.
-    keys.sort_by_key(|(k, _)| *k);
-    let mut evidence = Evidence::default();
-    for (_, (v, _)) in keys {
-        // The mean of each flagged view's (last) pixel is close enough to
-        // the voxel's flagged centre for clustering.
-        let n = v.flagged as f64;
-        evidence.points.push(Point3::from(v.sum / n.max(1.0)));
-        evidence.magnitude.push(v.difference / n.max(1.0));
     }
     evidence
 }

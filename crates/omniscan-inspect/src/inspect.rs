@@ -11,9 +11,7 @@ use omniscan_splat::orbit::robust_bounds;
 
 use crate::InspectError;
 use crate::align::{AlignSettings, Alignment, align_model, model_points};
-use crate::differencing::{
-    PixelComparison, VisualSettings, compare_pixels, geometric_evidence, visual_evidence,
-};
+use crate::differencing::{PixelComparison, compare_pixels, geometric_evidence, visual_evidence};
 use crate::verdict::{PairEvidence, Verdict, VerdictSettings, decide};
 use crate::views::{View, ViewRender, render_views, sphere_views, surface_points};
 
@@ -49,10 +47,10 @@ impl Default for InspectSettings {
             views: 100,
             width: 160,
             height: 120,
-            colour_threshold: 0.25,
+            colour_threshold: 0.3,
             spacing_mm: 1.0,
             min_geometric_area_mm2: 6.0,
-            min_visual_area_mm2: 3.0,
+            min_visual_area_mm2: 8.0,
             references: None,
             align: AlignSettings::default(),
         }
@@ -99,7 +97,7 @@ fn framed_views(reference: &Splats, settings: &InspectSettings) -> Vec<View> {
         .means
         .iter()
         .zip(&reference.opacity_logits)
-        .filter(|(_, o)| sigmoid(**o) > 0.1)
+        .filter(|(_, o)| sigmoid(**o) > 0.3)
         .map(|(m, _)| nalgebra::Point3::from(m.map(|v| v as f64)))
         .step_by(7)
         .collect();
@@ -115,10 +113,10 @@ fn framed_views(reference: &Splats, settings: &InspectSettings) -> Vec<View> {
         if spans.len() < 10 {
             continue;
         }
-        // The 99th percentile: a stray floater must not shrink the part.
+        // The 98th percentile: stray floaters must not shrink the part.
         let percentile = |v: &mut Vec<f64>| {
             v.sort_by(f64::total_cmp);
-            v[(v.len() * 99 / 100).min(v.len() - 1)]
+            v[(v.len() * 98 / 100).min(v.len() - 1)]
         };
         let mut xs: Vec<f64> = spans.iter().map(|s| s.0).collect();
         let mut ys: Vec<f64> = spans.drain(..).map(|s| s.1).collect();
@@ -256,13 +254,6 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
     let render_done = Instant::now();
 
     let threshold = settings.threshold_mm * unit;
-    let visual = VisualSettings {
-        colour_threshold: settings.colour_threshold,
-        depth_tolerance: threshold,
-        voxel: spacing,
-        agreement: 0.5,
-        min_views: 2,
-    };
     let mut pixels = Vec::new();
     let mut pairs = Vec::new();
     for a in 0..models.len() {
@@ -272,7 +263,12 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
                 a,
                 b,
                 geometric: geometric_evidence(&surfaces[a], &surfaces[b], threshold),
-                visual: visual_evidence(&renders[a], &renders[b], &views, &visual),
+                visual: visual_evidence(
+                    &surfaces[a],
+                    &surfaces[b],
+                    1.5 * spacing,
+                    settings.colour_threshold,
+                ),
             });
         }
     }

@@ -15,6 +15,10 @@
 //! regions is the defective one, and none is named when no model has any.
 //! See [`verdict`] for the rule.
 
+// Kernels index parallel arrays (splat attributes, RGB channels) by the same
+// loop variable; iterator chains would hide the maths.
+#![allow(clippy::needless_range_loop)]
+
 pub mod align;
 pub mod differencing;
 pub mod generate;

@@ -132,7 +132,7 @@ pub fn render_views(model: &Splats, views: &[View]) -> Vec<ViewRender> {
 }
 
 /// Pixels at least this opaque are surface.
-pub const SURFACE_ALPHA: f32 = 0.9;
+pub const SURFACE_ALPHA: f32 = 0.6;
 
 /// Back-projects pixel `(x, y)` of `view` at `depth` into the world.
 pub fn back_project(view: &View, x: u32, y: u32, depth: f64) -> Point3<f64> {

@@ -36,7 +36,7 @@ pub struct InspectArgs {
     #[arg(long, default_value_t = 4.5)]
     pub threshold_mm: f64,
     /// RGB distance (0-1 channels) above which a pixel differs.
-    #[arg(long, default_value_t = 0.25)]
+    #[arg(long, default_value_t = 0.3)]
     pub colour_threshold: f64,
     /// Views rendered of every model.
     #[arg(long, default_value_t = 100)]

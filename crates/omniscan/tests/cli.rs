@@ -421,3 +421,74 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
     );
     assert!(renders.join("orbit_001.png").is_file());
 }
+
+#[test]
+fn inspect_names_the_defective_copy_and_writes_the_report() {
+    let dir = tempfile::tempdir().unwrap();
+    let part = omniscan_inspect::generate::test_part([0.06, 0.04, 0.025], 0.0012);
+    let original = dir.path().join("part.ply");
+    omniscan_splat::ply::write_splats(&original, &part).unwrap();
+    let path = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
+    for (name, seed, defect) in [
+        ("a.ply", "1", None),
+        ("b.ply", "2", Some("bump")),
+        ("c.ply", "3", None),
+    ] {
+        let mut args = vec!["make-copy", original.to_str().unwrap(), "--seed", seed];
+        let out = path(name);
+        args.extend(["--out", out.as_str()]);
+        if let Some(d) = defect {
+            args.extend(["--defect", d, "--size-mm", "7"]);
+        }
+        let o = omniscan(&args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    let report = path("report");
+    let o = omniscan(&[
+        "inspect",
+        &path("a.ply"),
+        &path("b.ply"),
+        &path("c.ply"),
+        "--out",
+        &report,
+        "--views",
+        "40",
+        "--width",
+        "128",
+        "--height",
+        "96",
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let verdict: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(verdict["defective"], path("b.ply"));
+    assert_eq!(verdict["type"], "geometric");
+    assert!(Path::new(&report).join("report.html").exists());
+    assert!(Path::new(&report).join("defects.ply").exists());
+
+    // Two models, a missing file, a reference that is not a model: clear errors.
+    let o = omniscan(&["inspect", &path("a.ply"), &path("b.ply"), "--out", &report]);
+    assert!(!o.status.success());
+    let o = omniscan(&[
+        "inspect",
+        &path("a.ply"),
+        &path("b.ply"),
+        &path("nope.ply"),
+        "--out",
+        &report,
+    ]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("nope.ply"));
+    let o = omniscan(&[
+        "inspect",
+        &path("a.ply"),
+        &path("b.ply"),
+        &path("c.ply"),
+        "--out",
+        &report,
+        "--reference",
+        "x.ply,a.ply",
+    ]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("x.ply"));
+}
