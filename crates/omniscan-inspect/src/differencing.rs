@@ -264,6 +264,38 @@ mod tests {
     }
 
     #[test]
+    fn visual_evidence_finds_a_recoloured_patch_but_forgives_a_shifted_edge() {
+        let grid = |shift: f64| -> PointCloud {
+            let mut c = PointCloud::default();
+            for i in 0..900 {
+                let (x, y) = ((i % 30) as f64 * 0.001, (i / 30) as f64 * 0.001);
+                c.points.push(Point3::new(x, y, 0.0));
+                // A black/white edge at x = 15 mm (+ shift).
+                c.colors.push(if x < 0.015 + shift {
+                    [0.0; 3]
+                } else {
+                    [1.0; 3]
+                });
+            }
+            c
+        };
+        let a = grid(0.0);
+        let b = grid(0.001);
+        assert!(visual_evidence(&a, &b, 0.0015, 0.3).is_empty());
+        let mut marked = b.clone();
+        for i in 0..900 {
+            let p = marked.points[i];
+            if (p.x - 0.005).abs() <= 0.002 && (p.y - 0.005).abs() <= 0.002 {
+                marked.colors[i] = [1.0, 0.0, 0.0];
+            }
+        }
+        let e = visual_evidence(&a, &marked, 0.0015, 0.3);
+        // The 5x5 patch; its rim is forgiven from one side only.
+        assert!(e.len() >= 9 && e.len() <= 50, "{}", e.len());
+        assert!(e.points.iter().all(|p| (p.x - 0.005).abs() <= 0.0021));
+    }
+
+    #[test]
     fn geometric_evidence_finds_the_moved_points_both_ways() {
         let grid: Vec<Point3<f64>> = (0..400)
             .map(|i| Point3::new((i % 20) as f64 * 0.001, (i / 20) as f64 * 0.001, 0.0))
