@@ -10,51 +10,24 @@
 //! look most like the reference's wins. An alignment whose fitness stays
 //! under `min_fitness` is an error, not a guess.
 
-use nalgebra::Point3;
 use rayon::prelude::*;
 use serde::Serialize;
 
 use omniscan_core::Pose;
 use omniscan_register::PointCloud;
-use omniscan_register::cloud::SplatFilter;
+use omniscan_register::cloud::{SplatFilter, splat_centres};
 use omniscan_register::global::{GlobalSettings, global_registration};
 use omniscan_register::preprocess::statistical_inliers;
 use omniscan_splat::Splats;
-use omniscan_splat::sh::C0;
+use omniscan_splat::ply::splats_to_ply;
 
 use crate::InspectError;
 use crate::views::{View, render_views};
 
-/// Splat centres that pass `filter`, with their DC colour, outliers removed.
+/// Splat centres that pass `filter` (the same filter `omniscan align` uses
+/// on splat files), with their DC colour, outliers removed.
 pub fn model_points(model: &Splats, filter: &SplatFilter) -> PointCloud {
-    let sigmoid = |x: f32| 1.0 / (1.0 + (-x as f64).exp());
-    let largest: Vec<f64> = model
-        .log_scales
-        .iter()
-        .map(|s| s.iter().copied().fold(f32::NEG_INFINITY, f32::max).exp() as f64)
-        .collect();
-    let mut sorted = largest.clone();
-    sorted.sort_by(f64::total_cmp);
-    let median = sorted
-        .get(sorted.len() / 2)
-        .copied()
-        .unwrap_or(f64::INFINITY);
-    let k = model.sh_coefficients();
-    let mut cloud = PointCloud::default();
-    for i in 0..model.len() {
-        if sigmoid(model.opacity_logits[i]) < filter.min_opacity
-            || largest[i] > filter.max_scale_over_median * median
-        {
-            continue;
-        }
-        cloud
-            .points
-            .push(Point3::from(model.means[i].map(|v| v as f64)));
-        let dc = model.sh[i * k];
-        cloud
-            .colors
-            .push(dc.map(|c| (0.5 + C0 as f32 * c).clamp(0.0, 1.0)));
-    }
+    let mut cloud = splat_centres(&splats_to_ply(model), filter).unwrap_or_default();
     if cloud.len() > 30 {
         let keep = statistical_inliers(&cloud, 20, 2.0);
         cloud = cloud.select(&keep);

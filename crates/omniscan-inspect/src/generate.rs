@@ -359,7 +359,8 @@ pub fn plant_defect(
             let depth_limit = (0.25 * size).max(1e-3 * units_per_metre);
             // A line thinner than the splats would miss them all: at least
             // half the distance to the fourth nearest splat.
-            let mut nearby: Vec<f64> = within(size).iter().map(|&i| offset(i).norm()).collect();
+            let neighbourhood = within(size);
+            let mut nearby: Vec<f64> = neighbourhood.iter().map(|&i| offset(i).norm()).collect();
             nearby.sort_by(f64::total_cmp);
             let local_spacing = nearby.get(3).copied().unwrap_or(0.0);
             // The rendered surface can lie a little off the splat centres
@@ -395,7 +396,7 @@ pub fn plant_defect(
                 }
                 region = region_within(widen * depth_limit);
             }
-            let local = mean_colour(model, &within(size));
+            let local = mean_colour(model, &neighbourhood);
             let palette: &[[f64; 3]] = match kind {
                 DefectKind::Scratch => &[[0.05, 0.05, 0.05], [0.95, 0.95, 0.95]],
                 DefectKind::Tape => &[[0.95, 0.85, 0.1], [0.1, 0.3, 0.9], [0.9, 0.9, 0.9]],

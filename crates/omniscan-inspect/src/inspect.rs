@@ -83,10 +83,14 @@ pub struct Inspection {
 
 /// Views that fit the reference's robust box tightly in each image, so an
 /// elongated part is not drawn small in the middle of a square of background.
-fn framed_views(reference: &Splats, settings: &InspectSettings) -> Vec<View> {
-    let (centre, radius) = robust_bounds(reference);
+fn framed_views(
+    reference: &Splats,
+    centre: &nalgebra::Point3<f64>,
+    radius: f64,
+    settings: &InspectSettings,
+) -> Vec<View> {
     let mut views = sphere_views(
-        &centre,
+        centre,
         1.15 * radius,
         settings.views,
         settings.width,
@@ -185,7 +189,7 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
         }
     }
     let unit = settings.units_per_metre / 1000.0;
-    let (_, radius) = robust_bounds(&models[0]);
+    let (centre, radius) = robust_bounds(&models[0]);
     let size_m = 2.0 * radius / settings.units_per_metre;
     if !(0.005..=1.0).contains(&size_m) {
         tracing::warn!(
@@ -208,8 +212,7 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
             )));
         }
     }
-    let views = framed_views(&models[0], settings);
-    let (centre, radius) = robust_bounds(&models[0]);
+    let views = framed_views(&models[0], &centre, radius, settings);
     let twin_views = sphere_views(&centre, 1.15 * radius, 16, 96, 72);
     let twin_reference = render_views(&models[0], &twin_views);
     let mut alignments = vec![Alignment::identity()];
@@ -224,8 +227,7 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
         )?;
         if a.fitness < settings.align.min_fitness {
             return Err(InspectError::Alignment {
-                model: format!("model {i}"),
-                reference: "model 0".into(),
+                model: i,
                 fitness: a.fitness,
                 min_fitness: settings.align.min_fitness,
             });

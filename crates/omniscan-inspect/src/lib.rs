@@ -37,12 +37,12 @@ pub enum InspectError {
     #[error("{path}: {message}")]
     File { path: PathBuf, message: String },
     #[error(
-        "{model}: cannot be aligned to {reference}: best fitness {fitness:.3} is below {min_fitness} \
-         (is it a model of the same part, at the same scale?)"
+        "model {model} cannot be aligned to model 0: best fitness {fitness:.3} is below \
+         {min_fitness} (is it a model of the same part, at the same scale?)"
     )]
     Alignment {
-        model: String,
-        reference: String,
+        /// Index of the model among those given.
+        model: usize,
         fitness: f64,
         min_fitness: f64,
     },

@@ -112,14 +112,12 @@ fn attributed(pairs: &[PairEvidence], model: usize, kind: Kind, radius: f64) -> 
             .is_some()
     };
     let mut out = Evidence::default();
-    let mut seen: Vec<Point3<f64>> = Vec::new();
     for &i in &with {
         let e = evidence_of(pairs, kind, i);
         for (p, m) in e.points.iter().zip(&e.magnitude) {
             let confirmed = with.iter().all(|&j| j == i || near(j, p));
             let contradicted = without.iter().any(|&j| near(j, p));
             if confirmed && !contradicted {
-                seen.push(*p);
                 out.points.push(*p);
                 out.magnitude.push(*m);
             }

@@ -112,16 +112,12 @@ pub fn run(args: InspectArgs) -> Result<()> {
             model,
             fitness,
             min_fitness,
-            ..
-        } => {
-            let index: usize = model.trim_start_matches("model ").parse().unwrap_or(0);
-            anyhow::anyhow!(
-                "{} cannot be aligned to {}: best fitness {fitness:.3} is below {min_fitness} \
-                 (is it a model of the same part, at the same scale?)",
-                args.models[index].display(),
-                args.models[0].display()
-            )
-        }
+        } => anyhow::anyhow!(
+            "{} cannot be aligned to {}: best fitness {fitness:.3} is below {min_fitness} \
+             (is it a model of the same part, at the same scale?)",
+            args.models[model].display(),
+            args.models[0].display()
+        ),
         other => other.into(),
     })?;
     let verdict_path = write_report(&args.out, &inspection, &args.models, &settings)?;
