@@ -2,6 +2,7 @@
 //! captures, print the scan plan, and benchmark.
 
 mod inspect;
+mod mask;
 mod registration;
 mod render;
 mod train;
@@ -52,6 +53,8 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Gripper and object masks for every frame of a capture (kinematic gripper masks, the paper's object pipeline).
+    Mask(mask::MaskArgs),
     /// Write a nerfstudio transforms.json (OpenGL camera axes, object masks).
     ExportNerfstudio {
         capture: PathBuf,
@@ -93,6 +96,8 @@ enum Command {
 enum BenchCommand {
     /// Registration speed and accuracy: local ICP on frag_115 halves (against Open3D when given), global registration on random rotations.
     Registration(registration::BenchArgs),
+    /// Mask accuracy (IoU against ground truth) and time per image on simulated captures.
+    Mask(mask::BenchArgs),
     /// Inspection accuracy and time on triplets of generated good and defective copies.
     Inspect(inspect::BenchArgs),
     /// Time a full simulated capture: both arms' trajectories plus the empty pass.
@@ -403,6 +408,10 @@ fn run(cli: Cli) -> Result<()> {
         }
         Command::Align(args) => registration::align(args)?,
         Command::Inspect(args) => inspect::run(args)?,
+        Command::Mask(args) => mask::run(args)?,
+        Command::Bench {
+            which: BenchCommand::Mask(args),
+        } => mask::bench(args)?,
         Command::MakeCopy(args) => inspect::make_copy(args)?,
         Command::Bench {
             which: BenchCommand::Inspect(args),

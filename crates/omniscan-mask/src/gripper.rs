@@ -1,0 +1,267 @@
+//! Kinematic gripper masks: the gripper model rendered at the frame's
+//! recorded gripper pose and finger opening, checked against the sensor depth.
+//!
+//! The paper segments the gripper with a U-Net trained on 3,000 labelled
+//! images and propagates hand-picked seed masks with SAM2 ("Gripper Mask
+//! Generation"), because the learned masks were unreliable. The robot already
+//! knows where its gripper is (T_i and the finger opening are recorded with
+//! every frame), so we project its model instead: the same meshes the robot
+//! uses, placed by `omniscan_sim::gripper::GripperModel::parts`, rasterised by
+//! the simulator's renderer with the capture's intrinsics and T_c. The
+//! projection is then refined against the image:
+//! - where the sensor sees something nearer than the model (the held object in
+//!   front of a finger), the pixel is not gripper;
+//! - where the sensor sees past the model (a soft finger bent away from where
+//!   the model has it), the pixel is not gripper;
+//! - optionally, the mask grows by a few pixels into neighbours whose depth
+//!   and colour continue the gripper's (a finger bent outward).
+
+use nalgebra::Isometry3;
+use omniscan_core::Intrinsics;
+use omniscan_core::image_io::RgbImage;
+use omniscan_sim::gripper::GripperModel;
+use omniscan_sim::raster::{Instance, Label, Lighting, render};
+
+use crate::plane::Plane;
+
+/// Settings of the kinematic gripper mask.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct GripperSettings {
+    /// Samples per pixel along each axis when projecting the model.
+    pub supersample: u32,
+    /// Sensor depth nearer than the model by more than this hides the gripper, metres.
+    pub occlusion_tolerance_m: f32,
+    /// Sensor depth farther than the model by more than this means the gripper
+    /// is not there, metres.
+    pub see_through_tolerance_m: f32,
+    /// Grow the mask by up to this many pixels where depth and colour continue
+    /// the gripper's (0 = off).
+    pub grow_px: usize,
+    /// Depth agreement for growing, metres.
+    pub grow_depth_tolerance_m: f32,
+    /// Colour agreement for growing (RGB distance, channels 0..1).
+    pub grow_colour_tolerance: f32,
+}
+
+impl Default for GripperSettings {
+    fn default() -> Self {
+        GripperSettings {
+            supersample: 2,
+            occlusion_tolerance_m: 0.004,
+            see_through_tolerance_m: 0.015,
+            grow_px: 0,
+            grow_depth_tolerance_m: 0.003,
+            grow_colour_tolerance: 0.1,
+        }
+    }
+}
+
+/// The gripper model as projected into one frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GripperProjection {
+    /// Pixels where the gripper (fingers, body, wrist link) is the nearest thing.
+    pub mask: Plane<bool>,
+    /// Model depth (z, metres) of those pixels; 0 elsewhere.
+    pub depth_m: Plane<f32>,
+}
+
+/// Projects a gripper model into the fixed camera.
+pub struct KinematicGripper {
+    pub model: GripperModel,
+    pub intrinsics: Intrinsics,
+    /// T_c: camera to world.
+    pub camera_to_world: Isometry3<f64>,
+    pub settings: GripperSettings,
+}
+
+impl KinematicGripper {
+    /// The model at `gripper_to_world` (T_i) with the pads `opening_m` apart.
+    pub fn project(&self, gripper_to_world: &Isometry3<f64>, opening_m: f64) -> GripperProjection {
+        let parts = self.model.parts(opening_m);
+        let instances: Vec<Instance> = parts
+            .iter()
+            .map(|part| Instance {
+                mesh: part.mesh,
+                to_world: gripper_to_world * part.tcp_to_part,
+                // The forearm is drawn so that it hides what it covers, but it
+                // is not part of the gripper mask (the capture format's definition).
+                label: if part.is_arm { Label::Arm } else { Label::Gripper },
+                decals: &[],
+            })
+            .collect();
+        let lighting = Lighting {
+            ambient: [1.0; 3],
+            lights: vec![],
+        };
+        let view = render(
+            &instances,
+            &lighting,
+            &self.intrinsics,
+            &self.camera_to_world,
+            self.settings.supersample,
+        );
+        let (w, h) = (view.width as usize, view.height as usize);
+        let mask: Vec<bool> = view.labels.iter().map(|&l| l == Label::Gripper).collect();
+        let depth = view
+            .depth
+            .iter()
+            .zip(&mask)
+            .map(|(&d, &m)| if m { d } else { 0.0 })
+            .collect();
+        GripperProjection {
+            mask: Plane {
+                width: w,
+                height: h,
+                data: mask,
+            },
+            depth_m: Plane {
+                width: w,
+                height: h,
+                data: depth,
+            },
+        }
+    }
+
+    /// The refined gripper mask of a frame (see the module doc).
+    pub fn mask(
+        &self,
+        gripper_to_world: &Isometry3<f64>,
+        opening_m: f64,
+        image: &RgbImage,
+        sensor_depth_m: &Plane<f32>,
+    ) -> Plane<bool> {
+        let projection = self.project(gripper_to_world, opening_m);
+        refine(&projection, image, sensor_depth_m, &self.settings)
+    }
+}
+
+/// Checks a projected gripper against the sensor depth and image.
+pub fn refine(
+    projection: &GripperProjection,
+    image: &RgbImage,
+    sensor_depth_m: &Plane<f32>,
+    settings: &GripperSettings,
+) -> Plane<bool> {
+    let (w, h) = (projection.mask.width, projection.mask.height);
+    let mut mask = projection.mask.clone();
+    for i in 0..w * h {
+        if !mask.data[i] {
+            continue;
+        }
+        let (sensor, model) = (sensor_depth_m.data[i], projection.depth_m.data[i]);
+        if sensor <= 0.0 {
+            continue;
+        }
+        if sensor < model - settings.occlusion_tolerance_m
+            || sensor > model + settings.see_through_tolerance_m
+        {
+            mask.data[i] = false;
+        }
+    }
+    let colour = |i: usize| -> [f32; 3] {
+        let p = &image.data[3 * i..3 * i + 3];
+        [p[0] as f32 / 255.0, p[1] as f32 / 255.0, p[2] as f32 / 255.0]
+    };
+    for _ in 0..settings.grow_px {
+        let mut grown = mask.clone();
+        for y in 0..h {
+            for x in 0..w {
+                let i = y * w + x;
+                let d = sensor_depth_m.data[i];
+                if mask.data[i] || d <= 0.0 {
+                    continue;
+                }
+                let c = colour(i);
+                let mut accept = false;
+                for (dx, dy) in [(-1i64, 0i64), (1, 0), (0, -1), (0, 1)] {
+                    let (nx, ny) = (x as i64 + dx, y as i64 + dy);
+                    if nx < 0 || ny < 0 || nx >= w as i64 || ny >= h as i64 {
+                        continue;
+                    }
+                    let j = ny as usize * w + nx as usize;
+                    if !mask.data[j] || sensor_depth_m.data[j] <= 0.0 {
+                        continue;
+                    }
+                    let n = colour(j);
+                    let colour_distance =
+                        ((c[0] - n[0]).powi(2) + (c[1] - n[1]).powi(2) + (c[2] - n[2]).powi(2)).sqrt();
+                    if (d - sensor_depth_m.data[j]).abs() <= settings.grow_depth_tolerance_m
+                        && colour_distance <= settings.grow_colour_tolerance
+                    {
+                        accept = true;
+                        break;
+                    }
+                }
+                grown.data[i] = accept;
+            }
+        }
+        mask = grown;
+    }
+    mask
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn projection() -> GripperProjection {
+        // A 10x10 gripper square at 0.40 m in a 20x20 image.
+        let mask = Plane {
+            width: 20,
+            height: 20,
+            data: (0..400).map(|i| (5..15).contains(&(i % 20)) && (5..15).contains(&(i / 20))).collect(),
+        };
+        let depth_m = Plane {
+            width: 20,
+            height: 20,
+            data: mask.data.iter().map(|&m| if m { 0.40 } else { 0.0 }).collect(),
+        };
+        GripperProjection { mask, depth_m }
+    }
+
+    fn grey(w: usize, h: usize) -> RgbImage {
+        RgbImage {
+            width: w as u32,
+            height: h as u32,
+            data: vec![100; w * h * 3],
+        }
+    }
+
+    #[test]
+    fn the_object_in_front_hides_the_gripper_and_the_background_shows_through() {
+        let p = projection();
+        let mut depth = Plane::filled(20, 20, 1.0f32);
+        for y in 5..15 {
+            for x in 5..15 {
+                depth.data[y * 20 + x] = 0.40;
+            }
+        }
+        // Object in front of the left column, background through the right column.
+        for y in 5..15 {
+            depth.data[y * 20 + 5] = 0.37;
+            depth.data[y * 20 + 14] = 1.0;
+        }
+        let settings = GripperSettings::default();
+        let m = refine(&p, &grey(20, 20), &depth, &settings);
+        assert_eq!(m.count(), 80);
+        assert!(!m.at(5, 8) && !m.at(14, 8) && m.at(6, 8) && m.at(13, 8));
+    }
+
+    #[test]
+    fn growing_follows_depth_and_colour() {
+        let p = projection();
+        let mut depth = Plane::filled(20, 20, 1.0f32);
+        for y in 5..15 {
+            for x in 5..17 {
+                depth.data[y * 20 + x] = 0.40; // the real finger reaches 2 px further
+            }
+        }
+        let settings = GripperSettings {
+            grow_px: 3,
+            ..GripperSettings::default()
+        };
+        let m = refine(&p, &grey(20, 20), &depth, &settings);
+        assert_eq!(m.count(), 120);
+        assert!(m.at(16, 9) && !m.at(17, 9));
+    }
+}

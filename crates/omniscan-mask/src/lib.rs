@@ -1,0 +1,59 @@
+//! Masks for in-hand scans (paper, "Mask Processing"): for every image, which
+//! pixels show the gripper and which show the held object.
+//!
+//! - [`gripper`]: the kinematic gripper mask. The robot knows where its
+//!   gripper is, so the gripper model is rendered at the frame's recorded pose
+//!   and finger opening, then checked pixel by pixel against the sensor depth
+//!   (the object in front of a finger hides it; a finger that is not where the
+//!   model says lets the background through). This replaces the paper's U-Net
+//!   + SAM2 propagation, which needed hand-picked seed frames.
+//! - [`object`]: the paper's object pipeline. A foreground (near depth and
+//!   non-zero optical flow between neighbouring frames), candidate segments,
+//!   and for each candidate the non-robot score S_NR (mean depth change
+//!   against the empty-gripper pass at the same pose) and the non-gripper score
+//!   S_NG (share of the candidate outside the gripper mask); candidates over
+//!   both thresholds form the object mask.
+//! - [`flow`] and [`segment`]: the weight-free backends of the optical-flow
+//!   and candidate-segment roles (pyramidal Lucas-Kanade; Felzenszwalb-Huttenlocher
+//!   graph segmentation on colour and depth).
+//! - [`pipeline`]: a whole capture, written next to its images with the paths
+//!   recorded in `capture.json`, resumable; and evaluation against the
+//!   simulator's ground truth.
+
+pub mod flow;
+pub mod gripper;
+pub mod object;
+pub mod pipeline;
+pub mod plane;
+pub mod segment;
+
+pub use pipeline::{
+    Evaluation, MaskRunSummary, MaskSettings, evaluate_capture, mask_capture, mask_frame,
+};
+pub use plane::Plane;
+
+use std::path::PathBuf;
+
+/// Errors of the masking stage.
+#[derive(Debug, thiserror::Error)]
+pub enum MaskError {
+    #[error(transparent)]
+    Core(#[from] omniscan_core::CoreError),
+    #[error(transparent)]
+    Sim(#[from] omniscan_sim::SimError),
+    #[error("{path}: {message}")]
+    File { path: PathBuf, message: String },
+    #[error("{0}")]
+    Invalid(String),
+}
+
+impl MaskError {
+    pub fn file(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
+        MaskError::File {
+            path: path.into(),
+            message: message.into(),
+        }
+    }
+}
+
+pub type Result<T, E = MaskError> = std::result::Result<T, E>;

@@ -1,0 +1,458 @@
+//! Masks for a whole capture: every frame's gripper mask (kinematic) and
+//! object mask (the paper's pipeline), written as 8-bit PNGs under
+//! `masks/gripper/` and `masks/object/` next to `images/`, their paths
+//! recorded in `capture.json` (written atomically, after every mask is on
+//! disk). Resumable: a rerun with the same settings keeps the masks already
+//! written. With a simulated capture, [`evaluate_capture`] measures the masks
+//! against the simulator's ground truth.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::Instant;
+
+use nalgebra::Point3;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use omniscan_core::capture::{Arm, Capture, Frame};
+use omniscan_core::image_io::{self, RgbImage};
+use omniscan_sim::gripper::GripperModel;
+
+use crate::flow::{FlowEstimator, FlowSettings, LucasKanade};
+use crate::gripper::{GripperSettings, KinematicGripper};
+use crate::object::{ObjectInputs, ObjectSettings, object_mask};
+use crate::plane::{Plane, iou};
+use crate::segment::{CandidateProposer, GraphSegmenter};
+use crate::{MaskError, Result};
+
+/// Where the masks go, relative to the capture directory.
+pub const MASK_DIR: &str = "masks";
+const SETTINGS_FILE: &str = "settings.json";
+
+/// Every setting of the masking stage.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct MaskSettings {
+    pub gripper: GripperSettings,
+    pub object: ObjectSettings,
+    pub flow: FlowSettings,
+}
+
+/// Seconds spent per stage on one frame.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct FrameTimings {
+    pub load_s: f64,
+    pub gripper_s: f64,
+    pub flow_s: f64,
+    pub object_s: f64,
+}
+
+impl FrameTimings {
+    pub fn total(&self) -> f64 {
+        self.load_s + self.gripper_s + self.flow_s + self.object_s
+    }
+}
+
+/// The masks of one frame.
+#[derive(Debug, Clone)]
+pub struct FrameMasks {
+    pub object: Plane<bool>,
+    pub gripper: Plane<bool>,
+    pub candidates: usize,
+    pub kept_candidates: usize,
+    pub timings: FrameTimings,
+}
+
+/// The backends and settings for masking one capture.
+pub struct Masker {
+    pub gripper: KinematicGripper,
+    pub flow: Box<dyn FlowEstimator>,
+    pub proposer: Box<dyn CandidateProposer>,
+    pub settings: MaskSettings,
+}
+
+impl Masker {
+    /// The default (weight-free) backends for `capture`. The gripper model is
+    /// the YuMi meshes in `gripper_dir`, else the directory the simulator
+    /// recorded in the capture, else the built-in model.
+    pub fn new(capture: &Capture, gripper_dir: Option<&Path>, settings: MaskSettings) -> Result<Masker> {
+        let recorded = capture
+            .file
+            .generator
+            .as_ref()
+            .and_then(|g| g.get("config"))
+            .and_then(|c| c.get("gripper_dir"))
+            .and_then(|d| d.as_str())
+            .map(PathBuf::from);
+        let model = match gripper_dir.map(Path::to_path_buf).or(recorded) {
+            Some(dir) => GripperModel::from_yumi_dir(&dir).map_err(|e| {
+                MaskError::Invalid(format!(
+                    "{e}\n(the gripper model for kinematic masks; pass --gripper-dir with the robot's gripper meshes)"
+                ))
+            })?,
+            None => GripperModel::builtin(),
+        };
+        Ok(Masker {
+            gripper: KinematicGripper {
+                model,
+                intrinsics: *capture.intrinsics(),
+                camera_to_world: capture.camera_to_world(),
+                settings: settings.gripper,
+            },
+            flow: Box::new(LucasKanade {
+                settings: settings.flow,
+            }),
+            proposer: Box::new(GraphSegmenter {
+                settings: settings.object.segmentation,
+            }),
+            settings,
+        })
+    }
+}
+
+fn frame_label(capture: &Capture, index: usize) -> String {
+    format!(
+        "frames[{index}] ({})",
+        capture.resolve(&capture.file.frames[index].file_path).display()
+    )
+}
+
+/// The empty-gripper frame at the same pose as frame `index`: the same arm
+/// and trajectory position, else the same position in the arm's list.
+fn empty_partner<'a>(capture: &'a Capture, index: usize) -> Result<&'a Frame> {
+    let frame = &capture.file.frames[index];
+    let empties: Vec<&Frame> = capture
+        .file
+        .empty_frames
+        .iter()
+        .filter(|f| f.arm == frame.arm)
+        .collect();
+    if let Some(t) = frame.trajectory
+        && let Some(e) = empties.iter().find(|e| {
+            e.trajectory.is_some_and(|u| {
+                u.wrist_index == t.wrist_index && u.latitude_index == t.latitude_index
+            })
+        })
+    {
+        return Ok(e);
+    }
+    let position = capture
+        .arm_frames(frame.arm)
+        .position(|(i, _)| i == index)
+        .unwrap_or(0);
+    empties.get(position).copied().ok_or_else(|| {
+        MaskError::Invalid(format!(
+            "{}: no empty-gripper frame of the {} arm at this pose; the object mask's non-robot score needs the empty pass (capture.json `empty_frames`)",
+            frame_label(capture, index),
+            frame.arm
+        ))
+    })
+}
+
+/// The neighbouring frame of the same arm used for the motion test.
+fn neighbour(capture: &Capture, index: usize) -> Option<usize> {
+    let arm: Vec<usize> = capture
+        .arm_frames(capture.file.frames[index].arm)
+        .map(|(i, _)| i)
+        .collect();
+    let position = arm.iter().position(|&i| i == index)?;
+    arm.get(position + 1)
+        .or_else(|| position.checked_sub(1).and_then(|p| arm.get(p)))
+        .copied()
+}
+
+fn read_depth(capture: &Capture, frame: &Frame, what: &str) -> Result<Plane<f32>> {
+    let rel = frame.depth_path.as_ref().ok_or_else(|| {
+        MaskError::file(
+            capture.resolve(&frame.file_path),
+            format!("{what} has no depth_path: the masks need the sensor's depth"),
+        )
+    })?;
+    Ok(Plane::depth_metres(&image_io::read_depth(&capture.resolve(rel))?))
+}
+
+fn check_size(path: &Path, w: usize, h: usize, expected: (u32, u32)) -> Result<()> {
+    if (w as u32, h as u32) != expected {
+        return Err(MaskError::file(
+            path,
+            format!(
+                "is {w}x{h} but the capture's camera is {}x{}",
+                expected.0, expected.1
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Computes the masks of frame `index` (nothing is written).
+pub fn mask_frame(masker: &Masker, capture: &Capture, index: usize) -> Result<FrameMasks> {
+    let start = Instant::now();
+    let frame = capture.file.frames.get(index).ok_or_else(|| {
+        MaskError::Invalid(format!(
+            "frame {index} does not exist ({} frames)",
+            capture.file.frames.len()
+        ))
+    })?;
+    let size = (capture.intrinsics().width, capture.intrinsics().height);
+    let image_path = capture.resolve(&frame.file_path);
+    let image = image_io::read_rgb(&image_path)?;
+    check_size(&image_path, image.width as usize, image.height as usize, size)?;
+    let depth = read_depth(capture, frame, "this frame")?;
+    check_size(&image_path, depth.width, depth.height, size)?;
+    let empty = empty_partner(capture, index)?;
+    let empty_depth = read_depth(capture, empty, "its empty-gripper frame")?;
+    check_size(
+        &capture.resolve(&empty.file_path),
+        empty_depth.width,
+        empty_depth.height,
+        size,
+    )?;
+    let next: Option<RgbImage> = match neighbour(capture, index) {
+        Some(j) => {
+            let path = capture.resolve(&capture.file.frames[j].file_path);
+            let img = image_io::read_rgb(&path)?;
+            check_size(&path, img.width as usize, img.height as usize, size)?;
+            Some(img)
+        }
+        None => None,
+    };
+    let opening = frame.gripper_opening_m.ok_or_else(|| {
+        MaskError::Invalid(format!(
+            "{}: no gripper_opening_m; the kinematic gripper mask needs the finger opening",
+            frame_label(capture, index)
+        ))
+    })?;
+    let load_s = start.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    let gripper_to_world = frame.gripper_to_world.0;
+    let gripper = masker
+        .gripper
+        .mask(&gripper_to_world, opening, &image, &depth);
+    let empty_gripper = masker
+        .gripper
+        .project(&empty.gripper_to_world.0, empty.gripper_opening_m.unwrap_or(0.0))
+        .mask;
+    let gripper_s = t.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    let (w, h) = (image.width as usize, image.height as usize);
+    let moving = match &next {
+        Some(next) => masker
+            .flow
+            .flow(&image, next)?
+            .moving(masker.settings.object.min_flow_px),
+        // A single frame: nothing to compare with, so everything may move.
+        None => Plane::filled(w, h, true),
+    };
+    let flow_s = t.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    let tool = capture.camera_to_world().inverse() * (gripper_to_world * Point3::origin());
+    let inputs = ObjectInputs {
+        image: &image,
+        depth_m: &depth,
+        empty_depth_m: &empty_depth,
+        gripper: &gripper,
+        empty_gripper: Some(&empty_gripper),
+        moving: &moving,
+        tool_depth_m: tool.z as f32,
+    };
+    let object = object_mask(&inputs, masker.proposer.as_ref(), &masker.settings.object)?;
+    let object_s = t.elapsed().as_secs_f64();
+    Ok(FrameMasks {
+        kept_candidates: object.candidates.iter().filter(|c| c.kept).count(),
+        candidates: object.candidates.len(),
+        object: object.mask,
+        gripper,
+        timings: FrameTimings {
+            load_s,
+            gripper_s,
+            flow_s,
+            object_s,
+        },
+    })
+}
+
+/// What a masking run did.
+#[derive(Debug, Clone, Serialize)]
+pub struct MaskRunSummary {
+    pub frames: usize,
+    pub computed: usize,
+    pub resumed: usize,
+    pub seconds: f64,
+    /// Mean seconds per computed frame, per stage.
+    pub mean_timings: FrameTimings,
+}
+
+fn mask_paths(frame: &Frame) -> (String, String) {
+    let stem = Path::new(&frame.file_path)
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| frame.file_path.replace('/', "_"));
+    (
+        format!("{MASK_DIR}/object/{stem}.png"),
+        format!("{MASK_DIR}/gripper/{stem}.png"),
+    )
+}
+
+/// Masks every frame of `capture`, writes the PNGs and records their paths in
+/// `capture.json`. `progress(done, total)` is called after each frame.
+pub fn mask_capture(
+    capture: &mut Capture,
+    masker: &Masker,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> Result<MaskRunSummary> {
+    let start = Instant::now();
+    let dir = capture.dir.join(MASK_DIR);
+    std::fs::create_dir_all(dir.join("object"))
+        .and_then(|_| std::fs::create_dir_all(dir.join("gripper")))
+        .map_err(|e| omniscan_core::CoreError::io(&dir, e))?;
+    let marker = dir.join(SETTINGS_FILE);
+    let settings_json = serde_json::to_value(&masker.settings).expect("settings serialise");
+    let same_settings = marker.is_file()
+        && omniscan_core::io::read_json::<serde_json::Value>(&marker).ok() == Some(settings_json.clone());
+    omniscan_core::io::write_json_atomic(&marker, &settings_json)?;
+
+    let total = capture.file.frames.len();
+    let done = AtomicUsize::new(0);
+    let paths: Vec<(String, String)> = capture.file.frames.iter().map(mask_paths).collect();
+    let results: Vec<Result<Option<FrameTimings>>> = (0..total)
+        .into_par_iter()
+        .map(|i| {
+            let (object_rel, gripper_rel) = &paths[i];
+            let (object_path, gripper_path) = (capture.resolve(object_rel), capture.resolve(gripper_rel));
+            let result = if same_settings && object_path.is_file() && gripper_path.is_file() {
+                Ok(None)
+            } else {
+                mask_frame(masker, capture, i).and_then(|m| {
+                    image_io::write_mask(&gripper_path, &m.gripper.to_mask())?;
+                    image_io::write_mask(&object_path, &m.object.to_mask())?;
+                    Ok(Some(m.timings))
+                })
+            };
+            progress(done.fetch_add(1, Ordering::Relaxed) + 1, total);
+            result
+        })
+        .collect();
+    let mut timings = Vec::new();
+    let mut resumed = 0;
+    for r in results {
+        match r? {
+            Some(t) => timings.push(t),
+            None => resumed += 1,
+        }
+    }
+    for (frame, (object_rel, gripper_rel)) in capture.file.frames.iter_mut().zip(paths) {
+        frame.object_mask_path = Some(object_rel);
+        frame.gripper_mask_path = Some(gripper_rel);
+    }
+    capture.save()?;
+    let n = timings.len().max(1) as f64;
+    let mean = |f: fn(&FrameTimings) -> f64| timings.iter().map(f).sum::<f64>() / n;
+    Ok(MaskRunSummary {
+        frames: total,
+        computed: timings.len(),
+        resumed,
+        seconds: start.elapsed().as_secs_f64(),
+        mean_timings: FrameTimings {
+            load_s: mean(|t| t.load_s),
+            gripper_s: mean(|t| t.gripper_s),
+            flow_s: mean(|t| t.flow_s),
+            object_s: mean(|t| t.object_s),
+        },
+    })
+}
+
+/// Mean IoU of one mask kind, per arm.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct PerArm {
+    pub left: Option<f64>,
+    pub right: Option<f64>,
+}
+
+/// One frame's IoUs against ground truth.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FrameScore {
+    pub frame: usize,
+    pub file: String,
+    pub arm: Arm,
+    pub object_iou: f64,
+    pub gripper_iou: f64,
+    /// Ground-truth object pixels (0 = the object is hidden).
+    pub object_pixels: usize,
+}
+
+/// Masks against the simulator's ground truth.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Evaluation {
+    pub object_miou: PerArm,
+    pub gripper_miou: PerArm,
+    pub object_min_iou: f64,
+    pub gripper_min_iou: f64,
+    pub frames: usize,
+    /// The five frames with the lowest object IoU and the five with the lowest gripper IoU.
+    pub worst_object: Vec<FrameScore>,
+    pub worst_gripper: Vec<FrameScore>,
+}
+
+/// Compares the masks recorded in `capture.json` with the ground truth.
+pub fn evaluate_capture(capture: &Capture) -> Result<Evaluation> {
+    let scores: Vec<FrameScore> = capture
+        .file
+        .frames
+        .par_iter()
+        .enumerate()
+        .map(|(i, frame)| -> Result<FrameScore> {
+            let read = |rel: Option<&String>, what: &str| -> Result<Plane<bool>> {
+                let rel = rel.ok_or_else(|| {
+                    MaskError::Invalid(format!("{}: no {what}", frame_label(capture, i)))
+                })?;
+                Ok(Plane::from_mask(&image_io::read_mask(&capture.resolve(rel))?))
+            };
+            let gt = frame.gt.as_ref().ok_or_else(|| {
+                MaskError::Invalid(format!(
+                    "{}: no ground truth; --eval needs a simulated capture",
+                    frame_label(capture, i)
+                ))
+            })?;
+            let object = read(frame.object_mask_path.as_ref(), "object_mask_path (run the masking first)")?;
+            let gripper = read(frame.gripper_mask_path.as_ref(), "gripper_mask_path (run the masking first)")?;
+            let object_truth = read(gt.object_mask_path.as_ref(), "gt.object_mask_path")?;
+            let gripper_truth = read(gt.gripper_mask_path.as_ref(), "gt.gripper_mask_path")?;
+            Ok(FrameScore {
+                frame: i,
+                file: frame.file_path.clone(),
+                arm: frame.arm,
+                object_iou: iou(&object, &object_truth),
+                gripper_iou: iou(&gripper, &gripper_truth),
+                object_pixels: object_truth.count(),
+            })
+        })
+        .collect::<Result<_>>()?;
+    let mean = |arm: Arm, f: fn(&FrameScore) -> f64| -> Option<f64> {
+        let v: Vec<f64> = scores.iter().filter(|s| s.arm == arm).map(f).collect();
+        (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+    };
+    let worst = |f: fn(&FrameScore) -> f64| -> Vec<FrameScore> {
+        let mut sorted = scores.clone();
+        sorted.sort_by(|a, b| f(a).total_cmp(&f(b)));
+        sorted.truncate(5);
+        sorted
+    };
+    let min = |f: fn(&FrameScore) -> f64| scores.iter().map(f).fold(1.0, f64::min);
+    Ok(Evaluation {
+        object_miou: PerArm {
+            left: mean(Arm::Left, |s| s.object_iou),
+            right: mean(Arm::Right, |s| s.object_iou),
+        },
+        gripper_miou: PerArm {
+            left: mean(Arm::Left, |s| s.gripper_iou),
+            right: mean(Arm::Right, |s| s.gripper_iou),
+        },
+        object_min_iou: min(|s| s.object_iou),
+        gripper_min_iou: min(|s| s.gripper_iou),
+        frames: scores.len(),
+        worst_object: worst(|s| s.object_iou),
+        worst_gripper: worst(|s| s.gripper_iou),
+    })
+}

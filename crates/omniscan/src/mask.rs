@@ -1,0 +1,264 @@
+//! `omniscan mask` and `omniscan bench mask`: gripper and object masks for a
+//! capture (kinematic gripper masks, the paper's object pipeline), measured
+//! against the simulator's ground truth.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::ValueEnum;
+use rayon::prelude::*;
+use serde_json::json;
+
+use omniscan_core::capture::{Arm, Capture};
+use omniscan_core::image_io::read_mask;
+use omniscan_mask::pipeline::{FrameTimings, Masker, mask_frame};
+use omniscan_mask::plane::{Plane, iou};
+use omniscan_mask::{MaskSettings, evaluate_capture, mask_capture};
+
+/// How gripper masks are made.
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum GripperMethod {
+    /// Project the gripper model at the recorded pose and opening, checked against the sensor depth.
+    Kinematic,
+}
+
+#[derive(clap::Args)]
+pub struct MaskSettingsArgs {
+    /// Directory with the robot's gripper meshes (default: the one recorded by the simulator, else the built-in model).
+    #[arg(long)]
+    pub gripper_dir: Option<PathBuf>,
+    /// Smallest mean depth change against the empty-gripper pass for an object candidate (S_NR), millimetres.
+    #[arg(long, default_value_t = 8.0)]
+    pub non_robot_threshold_mm: f32,
+    /// Smallest share of an object candidate outside the gripper mask (S_NG; the paper's 0.89).
+    #[arg(long, default_value_t = 0.89)]
+    pub non_gripper_threshold: f32,
+    /// Foreground depth limit beyond the gripper's tool point, metres.
+    #[arg(long, default_value_t = 0.15)]
+    pub near_margin_m: f32,
+    /// Grow gripper masks by up to this many pixels where depth and colour continue the gripper (bent soft fingers).
+    #[arg(long, default_value_t = 0)]
+    pub grow_px: usize,
+}
+
+impl MaskSettingsArgs {
+    fn settings(&self) -> Result<MaskSettings> {
+        let mut s = MaskSettings::default();
+        for (name, v) in [
+            ("--non-robot-threshold-mm", self.non_robot_threshold_mm),
+            ("--near-margin-m", self.near_margin_m),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                bail!("{name} must be a non-negative number, got {v}");
+            }
+        }
+        if !(0.0..=1.0).contains(&self.non_gripper_threshold) {
+            bail!(
+                "--non-gripper-threshold must be between 0 and 1, got {}",
+                self.non_gripper_threshold
+            );
+        }
+        s.object.non_robot_threshold_m = self.non_robot_threshold_mm * 1e-3;
+        s.object.non_gripper_threshold = self.non_gripper_threshold;
+        s.object.near_margin_m = self.near_margin_m;
+        s.gripper.grow_px = self.grow_px;
+        Ok(s)
+    }
+}
+
+#[derive(clap::Args)]
+pub struct MaskArgs {
+    /// Capture directory (or its capture.json).
+    pub capture: PathBuf,
+    /// Gripper mask method.
+    #[arg(long, value_enum, default_value = "kinematic")]
+    pub gripper: GripperMethod,
+    #[command(flatten)]
+    pub settings: MaskSettingsArgs,
+    /// Compare the masks with the simulator's ground truth (mean IoU per arm).
+    #[arg(long)]
+    pub eval: bool,
+    /// Print the summary as JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn run(args: MaskArgs) -> Result<()> {
+    let mut capture = Capture::load(&args.capture)?;
+    let masker = Masker::new(&capture, args.settings.gripper_dir.as_deref(), args.settings.settings()?)?;
+    let bar = crate::progress_bar(capture.file.frames.len(), "masking");
+    let summary = mask_capture(&mut capture, &masker, &|done, _| bar.set_position(done as u64))
+        .with_context(|| format!("masking {} failed", capture.dir.display()))?;
+    bar.finish_and_clear();
+    let evaluation = if args.eval {
+        Some(evaluate_capture(&capture)?)
+    } else {
+        None
+    };
+    if args.json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&json!({ "masking": summary, "evaluation": evaluation }))?
+        );
+    } else {
+        println!(
+            "{} frames masked ({} computed, {} kept from an earlier run) in {:.1} s; masks in {}",
+            summary.frames,
+            summary.computed,
+            summary.resumed,
+            summary.seconds,
+            capture.dir.join(omniscan_mask::pipeline::MASK_DIR).display()
+        );
+        if let Some(e) = evaluation {
+            let f = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.4}"));
+            println!(
+                "object mIoU: left {}, right {} (lowest frame {:.3}); gripper mIoU: left {}, right {} (lowest frame {:.3})",
+                f(e.object_miou.left),
+                f(e.object_miou.right),
+                e.object_min_iou,
+                f(e.gripper_miou.left),
+                f(e.gripper_miou.right),
+                e.gripper_min_iou
+            );
+        }
+    }
+    Ok(())
+}
+
+#[derive(clap::Args)]
+pub struct BenchArgs {
+    /// Simulated captures to mask (each a directory with capture.json and ground truth).
+    #[arg(required = true)]
+    pub captures: Vec<PathBuf>,
+    /// Mask only every n-th frame of each capture.
+    #[arg(long, default_value_t = 1)]
+    pub every: usize,
+    #[command(flatten)]
+    pub settings: MaskSettingsArgs,
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Masks captures in memory (nothing is written), timing each stage and
+/// scoring against ground truth.
+pub fn bench(args: BenchArgs) -> Result<()> {
+    if args.every == 0 {
+        bail!("--every must be at least 1");
+    }
+    let settings = args.settings.settings()?;
+    let mut rows = Vec::new();
+    for path in &args.captures {
+        let capture = Capture::load(path)?;
+        let masker = Masker::new(&capture, args.settings.gripper_dir.as_deref(), settings.clone())?;
+        let frames: Vec<usize> = (0..capture.file.frames.len()).step_by(args.every).collect();
+        // Latency: one frame at a time (each stage may still use both cores).
+        let latency_frames: Vec<usize> = frames.iter().copied().take(10).collect();
+        let start = Instant::now();
+        for &i in &latency_frames {
+            mask_frame(&masker, &capture, i)?;
+        }
+        let latency_s = start.elapsed().as_secs_f64() / latency_frames.len().max(1) as f64;
+        // Throughput: frames in parallel, as `omniscan mask` runs them.
+        let bar = crate::progress_bar(frames.len(), "bench mask");
+        let start = Instant::now();
+        let results: Vec<(usize, f64, f64, FrameTimings)> = frames
+            .par_iter()
+            .map(|&i| -> Result<_> {
+                let m = mask_frame(&masker, &capture, i)?;
+                let frame = &capture.file.frames[i];
+                let gt = frame
+                    .gt
+                    .as_ref()
+                    .with_context(|| format!("{}: no ground truth", frame.file_path))?;
+                let truth = |rel: &Option<String>| -> Result<Plane<bool>> {
+                    let rel = rel.as_ref().context("ground truth mask path missing")?;
+                    Ok(Plane::from_mask(&read_mask(&capture.resolve(rel))?))
+                };
+                let object_iou = iou(&m.object, &truth(&gt.object_mask_path)?);
+                let gripper_iou = iou(&m.gripper, &truth(&gt.gripper_mask_path)?);
+                bar.inc(1);
+                Ok((i, object_iou, gripper_iou, m.timings))
+            })
+            .collect::<Result<_>>()?;
+        let throughput_s = start.elapsed().as_secs_f64() / frames.len().max(1) as f64;
+        bar.finish_and_clear();
+        let n = results.len().max(1) as f64;
+        let mean = |f: &dyn Fn(&(usize, f64, f64, FrameTimings)) -> f64| results.iter().map(f).sum::<f64>() / n;
+        let per_arm = |arm: Arm, f: &dyn Fn(&(usize, f64, f64, FrameTimings)) -> f64| {
+            let v: Vec<f64> = results
+                .iter()
+                .filter(|r| capture.file.frames[r.0].arm == arm)
+                .map(f)
+                .collect();
+            v.iter().sum::<f64>() / v.len().max(1) as f64
+        };
+        let worst = |f: &dyn Fn(&(usize, f64, f64, FrameTimings)) -> f64| {
+            let mut v: Vec<_> = results.iter().map(|r| (f(r), capture.file.frames[r.0].file_path.clone())).collect();
+            v.sort_by(|a, b| a.0.total_cmp(&b.0));
+            v.truncate(3);
+            v
+        };
+        let object = capture
+            .file
+            .gt
+            .as_ref()
+            .and_then(|g| g.extra.get("object"))
+            .and_then(|o| o.get("name"))
+            .and_then(|n| n.as_str())
+            .unwrap_or("?")
+            .to_string();
+        let (w, h) = (capture.intrinsics().width, capture.intrinsics().height);
+        rows.push(json!({
+            "capture": path,
+            "object": object,
+            "size": [w, h],
+            "frames": results.len(),
+            "object_miou": {"left": per_arm(Arm::Left, &|r| r.1), "right": per_arm(Arm::Right, &|r| r.1)},
+            "gripper_miou": {"left": per_arm(Arm::Left, &|r| r.2), "right": per_arm(Arm::Right, &|r| r.2)},
+            "object_min_iou": results.iter().map(|r| r.1).fold(1.0, f64::min),
+            "gripper_min_iou": results.iter().map(|r| r.2).fold(1.0, f64::min),
+            "worst_object": worst(&|r| r.1),
+            "worst_gripper": worst(&|r| r.2),
+            "seconds_per_image_sequential": latency_s,
+            "seconds_per_image_parallel": throughput_s,
+            "stage_seconds": {
+                "load": mean(&|r| r.3.load_s),
+                "gripper": mean(&|r| r.3.gripper_s),
+                "flow": mean(&|r| r.3.flow_s),
+                "object": mean(&|r| r.3.object_s),
+            },
+        }));
+        if !args.json {
+            let r = rows.last().unwrap();
+            println!(
+                "{:<22} {}x{} {:>4} frames  object mIoU L {:.4} R {:.4} (min {:.3})  gripper mIoU L {:.4} R {:.4} (min {:.3})  {:.3} s/image sequential, {:.3} s/image parallel",
+                object,
+                w,
+                h,
+                results.len(),
+                r["object_miou"]["left"].as_f64().unwrap_or(0.0),
+                r["object_miou"]["right"].as_f64().unwrap_or(0.0),
+                r["object_min_iou"].as_f64().unwrap_or(0.0),
+                r["gripper_miou"]["left"].as_f64().unwrap_or(0.0),
+                r["gripper_miou"]["right"].as_f64().unwrap_or(0.0),
+                r["gripper_min_iou"].as_f64().unwrap_or(0.0),
+                latency_s,
+                throughput_s
+            );
+            println!(
+                "    stages (s/image): load {:.3}, gripper {:.3}, flow {:.3}, object {:.3}; worst object frames {}; worst gripper frames {}",
+                mean(&|r| r.3.load_s),
+                mean(&|r| r.3.gripper_s),
+                mean(&|r| r.3.flow_s),
+                mean(&|r| r.3.object_s),
+                r["worst_object"],
+                r["worst_gripper"]
+            );
+        }
+    }
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&json!({ "captures": rows }))?);
+    }
+    Ok(())
+}
