@@ -29,8 +29,13 @@ use crate::plane::Plane;
 pub struct GripperSettings {
     /// Samples per pixel along each axis when projecting the model.
     pub supersample: u32,
-    /// Sensor depth nearer than the model by more than this hides the gripper, metres.
+    /// Sensor depth nearer than the model by more than this hides the
+    /// gripper, metres (at least; see `depth_noise_m_at_1m`).
     pub occlusion_tolerance_m: f32,
+    /// The depth sensor's noise (standard deviation) at 1 m, metres; it grows
+    /// with the square of the distance, and the occlusion tolerance is never
+    /// below four of it.
+    pub depth_noise_m_at_1m: f32,
     /// Sensor depth farther than the model by more than this means the gripper
     /// is not there, metres.
     pub see_through_tolerance_m: f32,
@@ -47,7 +52,8 @@ impl Default for GripperSettings {
     fn default() -> Self {
         GripperSettings {
             supersample: 2,
-            occlusion_tolerance_m: 0.004,
+            occlusion_tolerance_m: 0.0015,
+            depth_noise_m_at_1m: 0.002,
             see_through_tolerance_m: 0.015,
             grow_px: 0,
             grow_depth_tolerance_m: 0.003,
@@ -152,7 +158,10 @@ pub fn refine(
         if sensor <= 0.0 {
             continue;
         }
-        if sensor < model - settings.occlusion_tolerance_m
+        let tolerance = settings
+            .occlusion_tolerance_m
+            .max(4.0 * settings.depth_noise_m_at_1m * model * model);
+        if sensor < model - tolerance
             || sensor > model + settings.see_through_tolerance_m
         {
             mask.data[i] = false;

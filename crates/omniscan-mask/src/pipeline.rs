@@ -167,7 +167,11 @@ fn read_depth(capture: &Capture, frame: &Frame, what: &str) -> Result<Plane<f32>
             format!("{what} has no depth_path: the masks need the sensor's depth"),
         )
     })?;
-    Ok(Plane::depth_metres(&image_io::read_depth(&capture.resolve(rel))?))
+    let path = capture.resolve(rel);
+    let depth = Plane::depth_metres(&image_io::read_depth(&path)?);
+    let size = (capture.intrinsics().width, capture.intrinsics().height);
+    check_size(&path, depth.width, depth.height, size)?;
+    Ok(depth)
 }
 
 fn check_size(path: &Path, w: usize, h: usize, expected: (u32, u32)) -> Result<()> {
@@ -197,15 +201,8 @@ pub fn mask_frame(masker: &Masker, capture: &Capture, index: usize) -> Result<Fr
     let image = image_io::read_rgb(&image_path)?;
     check_size(&image_path, image.width as usize, image.height as usize, size)?;
     let depth = read_depth(capture, frame, "this frame")?;
-    check_size(&image_path, depth.width, depth.height, size)?;
     let empty = empty_partner(capture, index)?;
     let empty_depth = read_depth(capture, empty, "its empty-gripper frame")?;
-    check_size(
-        &capture.resolve(&empty.file_path),
-        empty_depth.width,
-        empty_depth.height,
-        size,
-    )?;
     let next: Option<RgbImage> = match neighbour(capture, index) {
         Some(j) => {
             let path = capture.resolve(&capture.file.frames[j].file_path);
@@ -310,7 +307,7 @@ pub fn mask_capture(
     let marker = dir.join(SETTINGS_FILE);
     let settings_json = serde_json::to_value(&masker.settings).expect("settings serialise");
     let same_settings = marker.is_file()
-        && omniscan_core::io::read_json::<serde_json::Value>(&marker).ok() == Some(settings_json.clone());
+        && omniscan_core::io::read_json::<MaskSettings>(&marker).ok().as_ref() == Some(&masker.settings);
     omniscan_core::io::write_json_atomic(&marker, &settings_json)?;
 
     let total = capture.file.frames.len();

@@ -276,7 +276,7 @@ fn run(cli: Cli) -> Result<()> {
                 ..SimConfig::default()
             };
             eprintln!(
-                "1/5 simulating a bimanual scan of {} into {}",
+                "1/6 simulating a bimanual scan of {} into {}",
                 config.object,
                 capture_dir.display()
             );
@@ -285,15 +285,37 @@ fn run(cli: Cli) -> Result<()> {
                 "    {} frames + {} empty-gripper frames in {:.1} s",
                 summary.frames, summary.empty_frames, summary.seconds
             );
-            eprintln!("2/5 validating the capture");
-            let capture = Capture::load(&capture_dir)?;
+            eprintln!("2/6 validating the capture");
+            let mut capture = Capture::load(&capture_dir)?;
             let s = capture.summary();
             eprintln!(
                 "    {}x{}, {} left, {} right, {} empty frames, ground truth: {}",
                 s.width, s.height, s.left_frames, s.right_frames, s.empty_frames, s.ground_truth
             );
             eprintln!(
-                "3/5 merging the scans: right depth cloud onto the left from T_lh⁻¹·T_rh, refined by ICP and colored ICP"
+                "3/6 masking every frame: kinematic gripper masks, object masks by the paper's scores"
+            );
+            let masker = omniscan_mask::pipeline::Masker::new(
+                &capture,
+                None,
+                omniscan_mask::MaskSettings::default(),
+            )?;
+            let bar = progress_bar(capture.file.frames.len(), "masking");
+            let masking = omniscan_mask::mask_capture(&mut capture, &masker, &|done, _| {
+                bar.set_position(done as u64)
+            })?;
+            bar.finish_and_clear();
+            let mask_eval = omniscan_mask::evaluate_capture(&capture)?;
+            eprintln!(
+                "    {:.1} s; against ground truth: object mIoU {:.4} / {:.4}, gripper mIoU {:.4} / {:.4} (left / right)",
+                masking.seconds,
+                mask_eval.object_miou.left.unwrap_or(f64::NAN),
+                mask_eval.object_miou.right.unwrap_or(f64::NAN),
+                mask_eval.gripper_miou.left.unwrap_or(f64::NAN),
+                mask_eval.gripper_miou.right.unwrap_or(f64::NAN)
+            );
+            eprintln!(
+                "4/6 merging the scans: right depth cloud onto the left from T_lh⁻¹·T_rh, refined by ICP and colored ICP"
             );
             let merge = registration::merge_scans(&capture)?;
             eprintln!(
@@ -305,7 +327,7 @@ fn run(cli: Cli) -> Result<()> {
                 merge["refined_error_mm"].as_f64().unwrap_or(0.0),
                 merge["fitness"].as_f64().unwrap_or(0.0)
             );
-            eprintln!("4/5 exporting both arms, merged with the refined transform, for nerfstudio");
+            eprintln!("5/6 exporting both arms, merged with the refined transform, for nerfstudio");
             let right_to_left = merge_transform(&merge)?;
             let export = export_nerfstudio(
                 &capture,
@@ -316,7 +338,7 @@ fn run(cli: Cli) -> Result<()> {
                 },
             )?;
             eprintln!(
-                "5/5 training the merged splat model on both arms (600 steps at 160x120 on the CPU; use `omniscan train` for full quality)"
+                "6/6 training the merged splat model on both arms (600 steps at 160x120 on the CPU; use `omniscan train` for full quality)"
             );
             let twin = train::train_merged(&capture, right_to_left, &out.join("twin.ply"), 600, 4)?;
             eprintln!(
@@ -331,6 +353,13 @@ fn run(cli: Cli) -> Result<()> {
                     "capture": capture_dir,
                     "twin": twin,
                     "summary": s,
+                    "masks": {
+                        "object_miou": mask_eval.object_miou,
+                        "gripper_miou": mask_eval.gripper_miou,
+                        "object_min_iou": mask_eval.object_min_iou,
+                        "gripper_min_iou": mask_eval.gripper_min_iou,
+                        "seconds": masking.seconds,
+                    },
                     "merge": {
                         "method": merge["method"],
                         "fitness": merge["fitness"],

@@ -37,6 +37,9 @@ pub struct MaskSettingsArgs {
     /// Foreground depth limit beyond the gripper's tool point, metres.
     #[arg(long, default_value_t = 0.15)]
     pub near_margin_m: f32,
+    /// Depth sensor noise at 1 m, millimetres (grows with distance squared); sets how far in front of a finger something must be to hide it.
+    #[arg(long, default_value_t = 2.0)]
+    pub depth_noise_mm_at_1m: f32,
     /// Grow gripper masks by up to this many pixels where depth and colour continue the gripper (bent soft fingers).
     #[arg(long, default_value_t = 0)]
     pub grow_px: usize,
@@ -63,6 +66,10 @@ impl MaskSettingsArgs {
         s.object.non_gripper_threshold = self.non_gripper_threshold;
         s.object.near_margin_m = self.near_margin_m;
         s.gripper.grow_px = self.grow_px;
+        if !(self.depth_noise_mm_at_1m.is_finite() && self.depth_noise_mm_at_1m >= 0.0) {
+            bail!("--depth-noise-mm-at-1m must be a non-negative number, got {}", self.depth_noise_mm_at_1m);
+        }
+        s.gripper.depth_noise_m_at_1m = self.depth_noise_mm_at_1m * 1e-3;
         Ok(s)
     }
 }
@@ -134,10 +141,45 @@ pub struct BenchArgs {
     /// Mask only every n-th frame of each capture.
     #[arg(long, default_value_t = 1)]
     pub every: usize,
+    /// Perturb every recorded gripper pose by this translation (random direction, per frame), millimetres: a robot's calibration error.
+    #[arg(long, default_value_t = 0.0)]
+    pub pose_error_mm: f64,
+    /// Perturb every recorded gripper pose by this rotation (random axis, per frame), degrees.
+    #[arg(long, default_value_t = 0.0)]
+    pub pose_error_deg: f64,
+    /// Seed of the pose perturbations.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
     #[command(flatten)]
     pub settings: MaskSettingsArgs,
     #[arg(long)]
     pub json: bool,
+}
+
+/// Moves every recorded gripper pose by `mm` and `deg` in seeded random
+/// directions, as an uncalibrated robot would report them.
+fn perturb_poses(capture: &mut Capture, mm: f64, deg: f64, seed: u64) {
+    use nalgebra::{Translation3, Unit, UnitQuaternion, Vector3};
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let mut unit = move || loop {
+        let v = Vector3::new(
+            rng.random::<f64>() * 2.0 - 1.0,
+            rng.random::<f64>() * 2.0 - 1.0,
+            rng.random::<f64>() * 2.0 - 1.0,
+        );
+        if v.norm() > 0.1 && v.norm() <= 1.0 {
+            break v.normalize();
+        }
+    };
+    let frames = capture.file.frames.iter_mut().chain(capture.file.empty_frames.iter_mut());
+    for frame in frames {
+        let error = nalgebra::Isometry3::from_parts(
+            Translation3::from(unit() * mm * 1e-3),
+            UnitQuaternion::from_axis_angle(&Unit::new_normalize(unit()), deg.to_radians()),
+        );
+        frame.gripper_to_world.0 *= error;
+    }
 }
 
 /// Masks captures in memory (nothing is written), timing each stage and
@@ -149,7 +191,10 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     let settings = args.settings.settings()?;
     let mut rows = Vec::new();
     for path in &args.captures {
-        let capture = Capture::load(path)?;
+        let mut capture = Capture::load(path)?;
+        if args.pose_error_mm != 0.0 || args.pose_error_deg != 0.0 {
+            perturb_poses(&mut capture, args.pose_error_mm, args.pose_error_deg, args.seed);
+        }
         let masker = Masker::new(&capture, args.settings.gripper_dir.as_deref(), settings.clone())?;
         let frames: Vec<usize> = (0..capture.file.frames.len()).step_by(args.every).collect();
         // Latency: one frame at a time (each stage may still use both cores).
@@ -213,6 +258,8 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             "capture": path,
             "object": object,
             "size": [w, h],
+            "pose_error_mm": args.pose_error_mm,
+            "pose_error_deg": args.pose_error_deg,
             "frames": results.len(),
             "object_miou": {"left": per_arm(Arm::Left, &|r| r.1), "right": per_arm(Arm::Right, &|r| r.1)},
             "gripper_miou": {"left": per_arm(Arm::Left, &|r| r.2), "right": per_arm(Arm::Right, &|r| r.2)},

@@ -492,3 +492,38 @@ fn inspect_names_the_defective_copy_and_writes_the_report() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("x.ply"));
 }
+
+#[test]
+fn mask_writes_masks_records_them_and_reports_iou_per_arm() {
+    let tmp = tempfile::tempdir().unwrap();
+    let capture = tmp.path().join("cap");
+    tiny_capture(&capture);
+    let out = omniscan(&["mask", capture.to_str().unwrap(), "--eval", "--json"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    for kind in ["object_miou", "gripper_miou"] {
+        for arm in ["left", "right"] {
+            let v = report["evaluation"][kind][arm].as_f64().unwrap();
+            // 64x48 images: outlines are a large share of the pixels.
+            assert!(v > 0.6 && v <= 1.0, "{kind} {arm} = {v}");
+        }
+    }
+    assert_eq!(report["masking"]["frames"], 12);
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(capture.join("capture.json")).unwrap()).unwrap();
+    let first = &json["frames"][0];
+    assert_eq!(first["object_mask_path"], "masks/object/left_000.png");
+    assert!(capture.join("masks/gripper/left_000.png").is_file());
+
+    let out = omniscan(&["mask", tmp.path().join("nowhere").to_str().unwrap()]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("capture.json"));
+    let out = omniscan(&[
+        "mask",
+        capture.to_str().unwrap(),
+        "--non-gripper-threshold",
+        "1.5",
+    ]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--non-gripper-threshold"));
+}

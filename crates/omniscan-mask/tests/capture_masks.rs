@@ -1,0 +1,155 @@
+//! The masking stage on small simulated captures, measured against the
+//! simulator's ground truth.
+
+use std::path::Path;
+
+use omniscan_core::capture::Capture;
+use omniscan_core::plan::ScanPlanConfig;
+use omniscan_mask::pipeline::{Masker, mask_frame};
+use omniscan_mask::{MaskSettings, evaluate_capture, mask_capture};
+use omniscan_sim::{SimConfig, Simulation};
+
+fn simulate(dir: &Path, object: &str, seed: u64) -> Capture {
+    let config = SimConfig {
+        object: object.into(),
+        width: 240,
+        height: 180,
+        seed,
+        supersample: 2,
+        plan: ScanPlanConfig {
+            wrist_angles: 6,
+            latitudes: 2,
+            ..ScanPlanConfig::default()
+        },
+        ..SimConfig::default()
+    };
+    Simulation::new(config)
+        .unwrap()
+        .run(dir, &|_, _| {})
+        .unwrap();
+    Capture::load(dir).unwrap()
+}
+
+#[test]
+fn masks_match_ground_truth_are_recorded_and_resume() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("capture");
+    let mut capture = simulate(&dir, "builtin:remote", 11);
+    let masker = Masker::new(&capture, None, MaskSettings::default()).unwrap();
+    let summary = mask_capture(&mut capture, &masker, &|_, _| {}).unwrap();
+    assert_eq!(summary.frames, 24);
+    assert_eq!(summary.computed, 24);
+
+    // The paths are in capture.json and the files load as masks of the right size.
+    let reloaded = Capture::load(&dir).unwrap();
+    for frame in &reloaded.file.frames {
+        assert!(frame.object_mask_path.as_deref().unwrap().starts_with("masks/object/"));
+        assert!(frame.gripper_mask_path.as_deref().unwrap().starts_with("masks/gripper/"));
+    }
+    let evaluation = evaluate_capture(&reloaded).unwrap();
+    for (what, value) in [
+        ("object left", evaluation.object_miou.left.unwrap()),
+        ("object right", evaluation.object_miou.right.unwrap()),
+        ("gripper left", evaluation.gripper_miou.left.unwrap()),
+        ("gripper right", evaluation.gripper_miou.right.unwrap()),
+    ] {
+        assert!(value > 0.95, "{what} mIoU {value}: {evaluation:#?}");
+    }
+    assert!(evaluation.object_min_iou > 0.8, "{evaluation:#?}");
+
+    // A second run with the same settings keeps every mask.
+    let mut again = Capture::load(&dir).unwrap();
+    let summary = mask_capture(&mut again, &masker, &|_, _| {}).unwrap();
+    assert_eq!((summary.computed, summary.resumed), (0, 24));
+    // Other settings recompute.
+    let mut settings = MaskSettings::default();
+    settings.object.non_robot_threshold_m = 0.02;
+    let other = Masker::new(&again, None, settings).unwrap();
+    let summary = mask_capture(&mut again, &other, &|_, _| {}).unwrap();
+    assert_eq!(summary.computed, 24);
+}
+
+#[test]
+fn the_non_robot_score_rejects_the_scene_when_depth_and_motion_do_not() {
+    // With the foreground cues switched off (every depth counts as near,
+    // no motion needed), only S_NR tells the object from the static scene
+    // and the arm: with it the masks stay right, without it they take the
+    // whole background.
+    let tmp = tempfile::tempdir().unwrap();
+    let capture = simulate(&tmp.path().join("c"), "builtin:flashlight", 3);
+    let mut strict_settings = MaskSettings::default();
+    strict_settings.object.near_margin_m = 10.0;
+    strict_settings.object.min_moving_fraction = 0.0;
+    let mut loose_settings = strict_settings.clone();
+    loose_settings.object.non_robot_threshold_m = 0.0;
+    let strict = Masker::new(&capture, None, strict_settings).unwrap();
+    let loose = Masker::new(&capture, None, loose_settings).unwrap();
+    let truth = |i: usize| {
+        let rel = capture.file.frames[i].gt.as_ref().unwrap().object_mask_path.clone().unwrap();
+        omniscan_mask::Plane::from_mask(
+            &omniscan_core::image_io::read_mask(&capture.resolve(&rel)).unwrap(),
+        )
+    };
+    let (mut strict_iou, mut loose_iou) = (0.0, 0.0);
+    for i in [0, 5, 13, 20] {
+        let t = truth(i);
+        strict_iou += omniscan_mask::plane::iou(&mask_frame(&strict, &capture, i).unwrap().object, &t) / 4.0;
+        loose_iou += omniscan_mask::plane::iou(&mask_frame(&loose, &capture, i).unwrap().object, &t) / 4.0;
+    }
+    assert!(strict_iou > 0.95, "{strict_iou}");
+    assert!(loose_iou < 0.3, "loose {loose_iou} strict {strict_iou}");
+}
+
+#[test]
+fn bad_captures_give_errors_that_name_the_problem() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("capture");
+    let capture = simulate(&dir, "builtin:t_connector", 5);
+
+    // No empty-gripper pass.
+    let mut no_empty = capture.clone();
+    no_empty.file.empty_frames.clear();
+    let masker = Masker::new(&no_empty, None, MaskSettings::default()).unwrap();
+    let e = mask_frame(&masker, &no_empty, 0).unwrap_err().to_string();
+    assert!(e.contains("empty-gripper") && e.contains("left_000"), "{e}");
+
+    // No depth.
+    let mut no_depth = capture.clone();
+    no_depth.file.frames[2].depth_path = None;
+    let e = mask_frame(&masker, &no_depth, 2).unwrap_err().to_string();
+    assert!(e.contains("depth") && e.contains("left_002"), "{e}");
+
+    // No finger opening.
+    let mut no_opening = capture.clone();
+    no_opening.file.frames[1].gripper_opening_m = None;
+    let e = mask_frame(&masker, &no_opening, 1).unwrap_err().to_string();
+    assert!(e.contains("gripper_opening_m"), "{e}");
+
+    // A missing image and a depth map of the wrong size.
+    std::fs::remove_file(dir.join(&capture.file.frames[3].file_path)).unwrap();
+    let e = mask_frame(&masker, &capture, 3).unwrap_err().to_string();
+    assert!(e.contains("left_003"), "{e}");
+    let depth = dir.join(capture.file.frames[4].depth_path.as_ref().unwrap());
+    omniscan_core::image_io::write_depth(
+        &depth,
+        &omniscan_core::image_io::DepthMm {
+            width: 10,
+            height: 10,
+            data: vec![500; 100],
+        },
+    )
+    .unwrap();
+    let e = mask_frame(&masker, &capture, 4).unwrap_err().to_string();
+    assert!(e.contains("10x10") && e.contains("240x180"), "{e}");
+
+    // A gripper directory without meshes.
+    let e = Masker::new(&capture, Some(tmp.path()), MaskSettings::default())
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("finray_finger.stl") && e.contains("--gripper-dir"), "{e}");
+
+    // Evaluation before masking.
+    let e = evaluate_capture(&capture).unwrap_err().to_string();
+    assert!(e.contains("run the masking first"), "{e}");
+}
