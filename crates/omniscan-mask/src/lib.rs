@@ -26,6 +26,7 @@ pub mod object;
 pub mod pipeline;
 pub mod plane;
 pub mod segment;
+pub mod unet;
 
 pub use pipeline::{
     Evaluation, MaskRunSummary, MaskSettings, evaluate_capture, mask_capture, mask_frame,
