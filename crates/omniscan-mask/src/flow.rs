@@ -59,9 +59,7 @@ impl Flow {
     /// Pixels with a valid estimate of at least `min_pixels` of motion.
     pub fn moving(&self, min_pixels: f32) -> Plane<bool> {
         let data = (0..self.dx.len())
-            .map(|i| {
-                self.valid.data[i] && self.dx.data[i].hypot(self.dy.data[i]) >= min_pixels
-            })
+            .map(|i| self.valid.data[i] && self.dx.data[i].hypot(self.dy.data[i]) >= min_pixels)
             .collect();
         Plane {
             width: self.dx.width,
@@ -143,7 +141,12 @@ pub fn lucas_kanade(a: &Plane<f32>, b: &Plane<f32>, settings: &FlowSettings) -> 
         let product = |p: &Plane<f32>, q: &Plane<f32>| Plane {
             width: w,
             height: h,
-            data: p.data.iter().zip(&q.data).map(|(a, b)| a * b).collect::<Vec<f32>>(),
+            data: p
+                .data
+                .iter()
+                .zip(&q.data)
+                .map(|(a, b)| a * b)
+                .collect::<Vec<f32>>(),
         };
         let r = settings.window_radius;
         let sxx = product(&gx, &gx).box_mean(r);
@@ -286,7 +289,10 @@ mod tests {
             }
             assert!(n > 8000, "too few valid estimates: {n}");
             let (mx, my) = (ex / n as f32, ey / n as f32);
-            assert!((mx - sx).abs() < 0.1 && (my - sy).abs() < 0.1, "({mx}, {my}) for ({sx}, {sy})");
+            assert!(
+                (mx - sx).abs() < 0.1 && (my - sy).abs() < 0.1,
+                "({mx}, {my}) for ({sx}, {sy})"
+            );
             let moving = flow.moving(0.5).count();
             if sx == 0.0 && sy == 0.0 {
                 assert_eq!(moving, 0);

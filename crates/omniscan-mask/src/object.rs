@@ -147,7 +147,12 @@ pub fn object_mask(
     // depth-connected surface it lies on moves. A part that spins about its
     // own axis (a torch held along the wrist axis) shows no flow on its
     // smooth end, yet that end is joined in depth to the textured middle.
-    let surfaces = depth_connected(&near, inputs.depth_m, inputs.gripper, settings.segmentation.depth_jump_m);
+    let surfaces = depth_connected(
+        &near,
+        inputs.depth_m,
+        inputs.gripper,
+        settings.segmentation.depth_jump_m,
+    );
     let mut surface_moving = vec![0usize; surfaces.1.len()];
     for i in 0..n {
         let s = surfaces.0.data[i];
@@ -307,7 +312,12 @@ mod tests {
         truth: Plane<bool>,
     }
 
-    fn scene(w: usize, h: usize, object: impl Fn(usize, usize) -> bool, object_colour: [u8; 3]) -> Scene {
+    fn scene(
+        w: usize,
+        h: usize,
+        object: impl Fn(usize, usize) -> bool,
+        object_colour: [u8; 3],
+    ) -> Scene {
         let mut image = vec![0u8; w * h * 3];
         let mut depth = vec![1.0f32; w * h];
         let mut empty = vec![1.0f32; w * h];
@@ -338,9 +348,15 @@ mod tests {
             }
         }
         fn plane<T>(w: usize, h: usize, data: Vec<T>) -> Plane<T> {
-            Plane { width: w, height: h, data }
+            Plane {
+                width: w,
+                height: h,
+                data,
+            }
         }
-        let moving = plane(w, h, 
+        let moving = plane(
+            w,
+            h,
             (0..w * h)
                 .map(|i| truth[i] || gripper[i] || i % w >= w * 3 / 4)
                 .collect::<Vec<bool>>(),
@@ -369,24 +385,47 @@ mod tests {
             moving: &s.moving,
             tool_depth_m: 0.40,
         };
-        object_mask(&inputs, &GraphSegmenter::default(), &ObjectSettings::default()).unwrap()
+        object_mask(
+            &inputs,
+            &GraphSegmenter::default(),
+            &ObjectSettings::default(),
+        )
+        .unwrap()
     }
 
     #[test]
     fn keeps_the_object_and_rejects_arm_gripper_and_background() {
         let (w, h) = (80, 60);
-        let s = scene(w, h, |x, y| (x as f32 - 30.0).hypot(y as f32 - 30.0) < 12.0, [30, 60, 200]);
+        let s = scene(
+            w,
+            h,
+            |x, y| (x as f32 - 30.0).hypot(y as f32 - 30.0) < 12.0,
+            [30, 60, 200],
+        );
         let out = run(&s);
         assert_eq!(out.mask, s.truth);
         // The arm's candidate was seen and rejected by S_NR, the gripper's by S_NG.
-        assert!(out.candidates.iter().any(|c| !c.kept && c.non_robot_m < 1e-6 && c.non_gripper > 0.99));
-        assert!(out.candidates.iter().any(|c| !c.kept && c.non_gripper < 0.01));
+        assert!(
+            out.candidates
+                .iter()
+                .any(|c| !c.kept && c.non_robot_m < 1e-6 && c.non_gripper > 0.99)
+        );
+        assert!(
+            out.candidates
+                .iter()
+                .any(|c| !c.kept && c.non_gripper < 0.01)
+        );
     }
 
     #[test]
     fn an_object_of_the_background_colour_at_the_border_is_still_found() {
         let (w, h) = (80, 60);
-        let s = scene(w, h, |x, y| x < 20 && (10..50).contains(&y), [150, 140, 120]);
+        let s = scene(
+            w,
+            h,
+            |x, y| x < 20 && (10..50).contains(&y),
+            [150, 140, 120],
+        );
         let out = run(&s);
         assert_eq!(out.mask, s.truth);
     }
@@ -398,7 +437,12 @@ mod tests {
         let out = run(&s);
         assert_eq!(out.mask.count(), 0);
         // No depth at all: nothing is near, nothing is object.
-        let mut blind = scene(w, h, |x, y| (x as f32 - 30.0).hypot(y as f32 - 30.0) < 12.0, [30, 60, 200]);
+        let mut blind = scene(
+            w,
+            h,
+            |x, y| (x as f32 - 30.0).hypot(y as f32 - 30.0) < 12.0,
+            [30, 60, 200],
+        );
         blind.depth.data.iter_mut().for_each(|d| *d = 0.0);
         assert_eq!(run(&blind).mask.count(), 0);
     }

@@ -23,6 +23,7 @@ use crate::gripper::{GripperSettings, KinematicGripper};
 use crate::object::{ObjectInputs, ObjectSettings, object_mask};
 use crate::plane::{Plane, iou};
 use crate::segment::{CandidateProposer, GraphSegmenter};
+use crate::unet::{Example, UNet};
 use crate::{MaskError, Result};
 
 /// Where the masks go, relative to the capture directory.
@@ -32,6 +33,10 @@ const SETTINGS_FILE: &str = "settings.json";
 /// Every setting of the masking stage.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct MaskSettings {
+    /// How gripper masks are made, for the resume check: `kinematic`, or
+    /// `unet:FILE` / `both:FILE` with the network's file.
+    #[serde(default)]
+    pub gripper_method: String,
     pub gripper: GripperSettings,
     pub object: ObjectSettings,
     pub flow: FlowSettings,
@@ -62,8 +67,23 @@ pub struct FrameMasks {
     pub timings: FrameTimings,
 }
 
+/// How a frame's gripper mask is made.
+pub enum GripperMethod {
+    /// The projected gripper model, checked against the depth.
+    Kinematic,
+    /// The paper's learned segmentation alone.
+    Unet(UNet),
+    /// The kinematic mask, plus the pixels within a few pixels of it that the
+    /// U-Net calls gripper (soft fingers bending outward).
+    Both(UNet),
+}
+
+/// How far around the kinematic mask the U-Net may add pixels (`Both`), pixels.
+const BOTH_REACH_PX: usize = 4;
+
 /// The backends and settings for masking one capture.
 pub struct Masker {
+    pub method: GripperMethod,
     pub gripper: KinematicGripper,
     pub flow: Box<dyn FlowEstimator>,
     pub proposer: Box<dyn CandidateProposer>,
@@ -74,7 +94,14 @@ impl Masker {
     /// The default (weight-free) backends for `capture`. The gripper model is
     /// the YuMi meshes in `gripper_dir`, else the directory the simulator
     /// recorded in the capture, else the built-in model.
-    pub fn new(capture: &Capture, gripper_dir: Option<&Path>, settings: MaskSettings) -> Result<Masker> {
+    pub fn new(
+        capture: &Capture,
+        gripper_dir: Option<&Path>,
+        mut settings: MaskSettings,
+    ) -> Result<Masker> {
+        if settings.gripper_method.is_empty() {
+            settings.gripper_method = "kinematic".into();
+        }
         let recorded = capture
             .file
             .generator
@@ -92,6 +119,7 @@ impl Masker {
             None => GripperModel::builtin(),
         };
         Ok(Masker {
+            method: GripperMethod::Kinematic,
             gripper: KinematicGripper {
                 model,
                 intrinsics: *capture.intrinsics(),
@@ -109,10 +137,28 @@ impl Masker {
     }
 }
 
+impl Masker {
+    /// Uses a trained U-Net (`both`: to extend the kinematic mask; else alone),
+    /// read from `path`.
+    pub fn with_unet(mut self, path: &Path, both: bool) -> Result<Masker> {
+        let net = UNet::load(path)?;
+        self.settings.gripper_method =
+            format!("{}:{}", if both { "both" } else { "unet" }, path.display());
+        self.method = if both {
+            GripperMethod::Both(net)
+        } else {
+            GripperMethod::Unet(net)
+        };
+        Ok(self)
+    }
+}
+
 fn frame_label(capture: &Capture, index: usize) -> String {
     format!(
         "frames[{index}] ({})",
-        capture.resolve(&capture.file.frames[index].file_path).display()
+        capture
+            .resolve(&capture.file.frames[index].file_path)
+            .display()
     )
 }
 
@@ -199,7 +245,12 @@ pub fn mask_frame(masker: &Masker, capture: &Capture, index: usize) -> Result<Fr
     let size = (capture.intrinsics().width, capture.intrinsics().height);
     let image_path = capture.resolve(&frame.file_path);
     let image = image_io::read_rgb(&image_path)?;
-    check_size(&image_path, image.width as usize, image.height as usize, size)?;
+    check_size(
+        &image_path,
+        image.width as usize,
+        image.height as usize,
+        size,
+    )?;
     let depth = read_depth(capture, frame, "this frame")?;
     let empty = empty_partner(capture, index)?;
     let empty_depth = read_depth(capture, empty, "its empty-gripper frame")?;
@@ -222,13 +273,50 @@ pub fn mask_frame(masker: &Masker, capture: &Capture, index: usize) -> Result<Fr
 
     let t = Instant::now();
     let gripper_to_world = frame.gripper_to_world.0;
-    let gripper = masker
-        .gripper
-        .mask(&gripper_to_world, opening, &image, &depth);
-    let empty_gripper = masker
-        .gripper
-        .project(&empty.gripper_to_world.0, empty.gripper_opening_m.unwrap_or(0.0))
-        .mask;
+    let kinematic = || {
+        masker
+            .gripper
+            .mask(&gripper_to_world, opening, &image, &depth)
+    };
+    let empty_kinematic = || {
+        masker
+            .gripper
+            .project(
+                &empty.gripper_to_world.0,
+                empty.gripper_opening_m.unwrap_or(0.0),
+            )
+            .mask
+    };
+    let (gripper, empty_gripper) = match &masker.method {
+        GripperMethod::Kinematic => (kinematic(), empty_kinematic()),
+        GripperMethod::Unet(net) => {
+            let empty_path = capture.resolve(&empty.file_path);
+            let empty_image = image_io::read_rgb(&empty_path)?;
+            check_size(
+                &empty_path,
+                empty_image.width as usize,
+                empty_image.height as usize,
+                size,
+            )?;
+            (net.mask(&image), net.mask(&empty_image))
+        }
+        GripperMethod::Both(net) => {
+            let base = kinematic();
+            let reach = base.dilate(BOTH_REACH_PX);
+            let learned = net.mask(&image);
+            let data = (0..base.len())
+                .map(|i| base.data[i] || (learned.data[i] && reach.data[i]))
+                .collect();
+            (
+                Plane {
+                    width: base.width,
+                    height: base.height,
+                    data,
+                },
+                empty_kinematic(),
+            )
+        }
+    };
     let gripper_s = t.elapsed().as_secs_f64();
 
     let t = Instant::now();
@@ -307,7 +395,10 @@ pub fn mask_capture(
     let marker = dir.join(SETTINGS_FILE);
     let settings_json = serde_json::to_value(&masker.settings).expect("settings serialise");
     let same_settings = marker.is_file()
-        && omniscan_core::io::read_json::<MaskSettings>(&marker).ok().as_ref() == Some(&masker.settings);
+        && omniscan_core::io::read_json::<MaskSettings>(&marker)
+            .ok()
+            .as_ref()
+            == Some(&masker.settings);
     omniscan_core::io::write_json_atomic(&marker, &settings_json)?;
 
     let total = capture.file.frames.len();
@@ -317,7 +408,8 @@ pub fn mask_capture(
         .into_par_iter()
         .map(|i| {
             let (object_rel, gripper_rel) = &paths[i];
-            let (object_path, gripper_path) = (capture.resolve(object_rel), capture.resolve(gripper_rel));
+            let (object_path, gripper_path) =
+                (capture.resolve(object_rel), capture.resolve(gripper_rel));
             let result = if same_settings && object_path.is_file() && gripper_path.is_file() {
                 Ok(None)
             } else {
@@ -404,7 +496,9 @@ pub fn evaluate_capture(capture: &Capture) -> Result<Evaluation> {
                 let rel = rel.ok_or_else(|| {
                     MaskError::Invalid(format!("{}: no {what}", frame_label(capture, i)))
                 })?;
-                Ok(Plane::from_mask(&image_io::read_mask(&capture.resolve(rel))?))
+                Ok(Plane::from_mask(&image_io::read_mask(
+                    &capture.resolve(rel),
+                )?))
             };
             let gt = frame.gt.as_ref().ok_or_else(|| {
                 MaskError::Invalid(format!(
@@ -412,8 +506,14 @@ pub fn evaluate_capture(capture: &Capture) -> Result<Evaluation> {
                     frame_label(capture, i)
                 ))
             })?;
-            let object = read(frame.object_mask_path.as_ref(), "object_mask_path (run the masking first)")?;
-            let gripper = read(frame.gripper_mask_path.as_ref(), "gripper_mask_path (run the masking first)")?;
+            let object = read(
+                frame.object_mask_path.as_ref(),
+                "object_mask_path (run the masking first)",
+            )?;
+            let gripper = read(
+                frame.gripper_mask_path.as_ref(),
+                "gripper_mask_path (run the masking first)",
+            )?;
             let object_truth = read(gt.object_mask_path.as_ref(), "gt.object_mask_path")?;
             let gripper_truth = read(gt.gripper_mask_path.as_ref(), "gt.gripper_mask_path")?;
             Ok(FrameScore {
@@ -452,4 +552,62 @@ pub fn evaluate_capture(capture: &Capture) -> Result<Evaluation> {
         worst_object: worst(|s| s.object_iou),
         worst_gripper: worst(|s| s.gripper_iou),
     })
+}
+
+/// Labelled examples for the gripper U-Net from simulated captures: every
+/// `every`-th frame and empty-gripper frame with its ground-truth gripper
+/// mask. Frames whose index in that list is a multiple of 8 are held out and
+/// returned at full size for evaluation.
+pub fn gripper_training_set(
+    net: &UNet,
+    captures: &[Capture],
+    every: usize,
+) -> Result<(Vec<Example>, Vec<(RgbImage, Plane<bool>)>)> {
+    let mut items: Vec<(&Capture, &Frame)> = Vec::new();
+    for capture in captures {
+        for frame in capture
+            .file
+            .frames
+            .iter()
+            .chain(&capture.file.empty_frames)
+            .step_by(every.max(1))
+        {
+            items.push((capture, frame));
+        }
+    }
+    let loaded: Vec<(usize, RgbImage, Plane<bool>)> = items
+        .par_iter()
+        .enumerate()
+        .map(|(k, (capture, frame))| -> Result<_> {
+            let rel = frame
+                .gt
+                .as_ref()
+                .and_then(|g| g.gripper_mask_path.as_ref())
+                .ok_or_else(|| {
+                    MaskError::file(
+                        capture.resolve(&frame.file_path),
+                        "no ground-truth gripper mask: training needs a simulated capture",
+                    )
+                })?;
+            let image = image_io::read_rgb(&capture.resolve(&frame.file_path))?;
+            let mask = Plane::from_mask(&image_io::read_mask(&capture.resolve(rel))?);
+            if (mask.width, mask.height) != (image.width as usize, image.height as usize) {
+                return Err(MaskError::file(
+                    capture.resolve(rel),
+                    "size differs from its image",
+                ));
+            }
+            Ok((k, image, mask))
+        })
+        .collect::<Result<_>>()?;
+    let mut train = Vec::new();
+    let mut held_out = Vec::new();
+    for (k, image, mask) in loaded {
+        if k % 8 == 0 {
+            held_out.push((image, mask));
+        } else {
+            train.push(Example::new(net, &image, &mask));
+        }
+    }
+    Ok((train, held_out))
 }

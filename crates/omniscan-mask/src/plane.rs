@@ -181,34 +181,35 @@ impl Plane<bool> {
         }
         let (w, h) = (self.width, self.height);
         // A square structuring element is separable: rows, then columns.
-        let pass = |src: &[bool], len: usize, lines: usize, index: &dyn Fn(usize, usize) -> usize| {
-            let mut out = vec![!dilate; src.len()];
-            for line in 0..lines {
-                // Distance to the nearest "hit" (set for dilation, unset for erosion) seen so far.
-                let mut last_hit: Option<usize> = None;
-                let mut next_hit = vec![usize::MAX; len];
-                let mut upcoming = usize::MAX;
-                for i in (0..len).rev() {
-                    if src[index(line, i)] == dilate {
-                        upcoming = i;
+        let pass =
+            |src: &[bool], len: usize, lines: usize, index: &dyn Fn(usize, usize) -> usize| {
+                let mut out = vec![!dilate; src.len()];
+                for line in 0..lines {
+                    // Distance to the nearest "hit" (set for dilation, unset for erosion) seen so far.
+                    let mut last_hit: Option<usize> = None;
+                    let mut next_hit = vec![usize::MAX; len];
+                    let mut upcoming = usize::MAX;
+                    for i in (0..len).rev() {
+                        if src[index(line, i)] == dilate {
+                            upcoming = i;
+                        }
+                        next_hit[i] = upcoming;
                     }
-                    next_hit[i] = upcoming;
-                }
-                for i in 0..len {
-                    if src[index(line, i)] == dilate {
-                        last_hit = Some(i);
+                    for i in 0..len {
+                        if src[index(line, i)] == dilate {
+                            last_hit = Some(i);
+                        }
+                        let near_before = last_hit.is_some_and(|j| i - j <= radius);
+                        let near_after = next_hit[i] != usize::MAX && next_hit[i] - i <= radius;
+                        out[index(line, i)] = if near_before || near_after {
+                            dilate
+                        } else {
+                            !dilate
+                        };
                     }
-                    let near_before = last_hit.is_some_and(|j| i - j <= radius);
-                    let near_after = next_hit[i] != usize::MAX && next_hit[i] - i <= radius;
-                    out[index(line, i)] = if near_before || near_after {
-                        dilate
-                    } else {
-                        !dilate
-                    };
                 }
-            }
-            out
-        };
+                out
+            };
         let rows = pass(&self.data, w, h, &|y, x| y * w + x);
         let data = pass(&rows, h, w, &|x, y| y * w + x);
         Plane {
@@ -296,7 +297,9 @@ impl Plane<bool> {
             }
         }
         for (o, &l) in out.data.iter_mut().zip(&hole_labels.data) {
-            if l != u32::MAX && !touches_border[l as usize] && hole_sizes[l as usize] <= max_hole_pixels
+            if l != u32::MAX
+                && !touches_border[l as usize]
+                && hole_sizes[l as usize] <= max_hole_pixels
             {
                 *o = true;
             }

@@ -133,7 +133,11 @@ pub fn segment(
     let (w, h) = (image.width as usize, image.height as usize);
     let colour = |i: usize| -> [f32; 3] {
         let p = &image.data[3 * i..3 * i + 3];
-        [p[0] as f32 / 255.0, p[1] as f32 / 255.0, p[2] as f32 / 255.0]
+        [
+            p[0] as f32 / 255.0,
+            p[1] as f32 / 255.0,
+            p[2] as f32 / 255.0,
+        ]
     };
     // Edges bucketed by quantised weight: a counting sort in O(edges).
     let mut buckets: Vec<Vec<(u32, u32)>> = vec![Vec::new(); BINS];
@@ -142,7 +146,11 @@ pub fn segment(
             return None;
         }
         let (di, dj) = (depth_m.data[i], depth_m.data[j]);
-        let depth_step = if di > 0.0 && dj > 0.0 { (di - dj).abs() } else { 0.0 };
+        let depth_step = if di > 0.0 && dj > 0.0 {
+            (di - dj).abs()
+        } else {
+            0.0
+        };
         if depth_step > settings.depth_jump_m {
             return None;
         }
@@ -189,8 +197,10 @@ pub fn segment(
             if a == b {
                 continue;
             }
-            let threshold_a = forest.internal[a as usize] + settings.scale / forest.size[a as usize] as f32;
-            let threshold_b = forest.internal[b as usize] + settings.scale / forest.size[b as usize] as f32;
+            let threshold_a =
+                forest.internal[a as usize] + settings.scale / forest.size[a as usize] as f32;
+            let threshold_b =
+                forest.internal[b as usize] + settings.scale / forest.size[b as usize] as f32;
             if weight <= threshold_a.min(threshold_b) {
                 forest.union(a, b, weight);
             }
@@ -253,7 +263,11 @@ mod tests {
 
     #[test]
     fn two_colours_give_two_segments() {
-        let img = image(40, 30, |x, _| if x < 20 { [200, 30, 30] } else { [30, 30, 200] });
+        let img = image(
+            40,
+            30,
+            |x, _| if x < 20 { [200, 30, 30] } else { [30, 30, 200] },
+        );
         let depth = Plane::filled(40, 30, 0.5f32);
         let all = Plane::filled(40, 30, true);
         let none = Plane::filled(40, 30, false);
@@ -269,7 +283,9 @@ mod tests {
         let depth = Plane {
             width: 40,
             height: 30,
-            data: (0..1200).map(|i| if i % 40 < 10 { 0.3 } else { 0.8 }).collect(),
+            data: (0..1200)
+                .map(|i| if i % 40 < 10 { 0.3 } else { 0.8 })
+                .collect(),
         };
         let all = Plane::filled(40, 30, true);
         let barrier = Plane {
@@ -284,7 +300,13 @@ mod tests {
             height: 30,
             data: (0..1200).map(|i| i % 40 >= 30).collect(),
         };
-        let s = segment(&img, &depth, &region, &Plane::filled(40, 30, false), &SegmentSettings::default());
+        let s = segment(
+            &img,
+            &depth,
+            &region,
+            &Plane::filled(40, 30, false),
+            &SegmentSettings::default(),
+        );
         assert_eq!(s.sizes, vec![300]);
         assert_eq!(s.labels.at(0, 0), u32::MAX);
     }

@@ -182,8 +182,8 @@ impl Conv {
                                 *d += weight * a;
                             }
                         }
-                        grad.weight[((o * self.inputs + i) * self.kernel + ky) * self.kernel + kx] +=
-                            dw;
+                        grad.weight
+                            [((o * self.inputs + i) * self.kernel + ky) * self.kernel + kx] += dw;
                     }
                 }
             }
@@ -261,7 +261,8 @@ fn upsample_backward(grad: &Tensor) -> Tensor {
     for c in 0..grad.channels {
         for y in 0..grad.height {
             for x in 0..grad.width {
-                out.data[(c * h + y / 2) * w + x / 2] += grad.data[(c * grad.height + y) * grad.width + x];
+                out.data[(c * h + y / 2) * w + x / 2] +=
+                    grad.data[(c * grad.height + y) * grad.width + x];
             }
         }
     }
@@ -331,7 +332,12 @@ pub struct UNet {
 
 impl UNet {
     /// A freshly initialised network (seeded).
-    pub fn new(input_width: usize, input_height: usize, channels: [usize; 3], seed: u64) -> Result<UNet> {
+    pub fn new(
+        input_width: usize,
+        input_height: usize,
+        channels: [usize; 3],
+        seed: u64,
+    ) -> Result<UNet> {
         if input_width % 4 != 0 || input_height % 4 != 0 || input_width < 8 || input_height < 8 {
             return Err(MaskError::Invalid(format!(
                 "the U-Net's working size must be multiples of 4 and at least 8, got {input_width}x{input_height}"
@@ -447,7 +453,10 @@ impl UNet {
             data: logits.data.iter().map(|&z| sigmoid(z)).collect(),
         };
         let (w, h) = (image.width as usize, image.height as usize);
-        let (sx, sy) = (small.width as f32 / w as f32, small.height as f32 / h as f32);
+        let (sx, sy) = (
+            small.width as f32 / w as f32,
+            small.height as f32 / h as f32,
+        );
         let mut data = Vec::with_capacity(w * h);
         for y in 0..h {
             for x in 0..w {
@@ -502,7 +511,11 @@ impl UNet {
         relu_backward(&mut g, &act.a3);
         let (g_p2, gw) = l[4].backward(&act.p2, &g);
         grads[4] = Some(gw);
-        let g_pool2 = max_pool_backward(&g_p2, &act.pool2, (act.s2.channels, act.s2.height, act.s2.width));
+        let g_pool2 = max_pool_backward(
+            &g_p2,
+            &act.pool2,
+            (act.s2.channels, act.s2.height, act.s2.width),
+        );
         for (a, b) in g_s2.data.iter_mut().zip(&g_pool2.data) {
             *a += b;
         }
@@ -512,7 +525,11 @@ impl UNet {
         relu_backward(&mut g, &act.a2);
         let (g_p1, gw) = l[2].backward(&act.p1, &g);
         grads[2] = Some(gw);
-        let g_pool1 = max_pool_backward(&g_p1, &act.pool1, (act.s1.channels, act.s1.height, act.s1.width));
+        let g_pool1 = max_pool_backward(
+            &g_p1,
+            &act.pool1,
+            (act.s1.channels, act.s1.height, act.s1.width),
+        );
         for (a, b) in g_s1.data.iter_mut().zip(&g_pool1.data) {
             *a += b;
         }
@@ -538,7 +555,11 @@ impl UNet {
                 vec![layer.outputs, layer.inputs, layer.kernel, layer.kernel],
                 to_bytes(&layer.weight),
             ));
-            bytes.push((format!("{name}.bias"), vec![layer.outputs], to_bytes(&layer.bias)));
+            bytes.push((
+                format!("{name}.bias"),
+                vec![layer.outputs],
+                to_bytes(&layer.bias),
+            ));
         }
         let views = bytes
             .iter()
@@ -589,7 +610,8 @@ impl UNet {
         let channels: [usize; 3] = channels
             .try_into()
             .map_err(|_| bad("metadata `channels` must be three numbers, e.g. 8,16,32".into()))?;
-        let mut net = UNet::new(input_width, input_height, channels, 0).map_err(|e| bad(e.to_string()))?;
+        let mut net =
+            UNet::new(input_width, input_height, channels, 0).map_err(|e| bad(e.to_string()))?;
         let tensors = safetensors::SafeTensors::deserialize(&bytes)
             .map_err(|e| bad(format!("not a safetensors file: {e}")))?;
         for (name, layer) in LAYER_NAMES.iter().zip(net.layers.iter_mut()) {
@@ -795,7 +817,10 @@ pub fn train(
         let mut total = results[0].1.clone();
         for (_, g) in &results[1..] {
             for (t, l) in total.iter_mut().zip(g) {
-                t.weight.iter_mut().zip(&l.weight).for_each(|(a, b)| *a += b);
+                t.weight
+                    .iter_mut()
+                    .zip(&l.weight)
+                    .for_each(|(a, b)| *a += b);
                 t.bias.iter_mut().zip(&l.bias).for_each(|(a, b)| *a += b);
             }
         }
@@ -805,7 +830,8 @@ pub fn train(
         }
         // Cosine decay to a tenth keeps the last steps from bouncing.
         let progress_share = step as f32 / settings.steps.max(1) as f32;
-        let lr = settings.learning_rate * (0.55 + 0.45 * (std::f32::consts::PI * progress_share).cos());
+        let lr =
+            settings.learning_rate * (0.55 + 0.45 * (std::f32::consts::PI * progress_share).cos());
         adam.step(net, &total, lr);
         let loss = results.iter().map(|r| r.0).sum::<f64>() / n as f64;
         if step * 10 >= settings.steps * 9 {
@@ -822,14 +848,22 @@ mod tests {
 
     fn tiny_image(w: usize, h: usize, seed: u64) -> (RgbImage, Plane<bool>) {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let (cx, cy) = (rng.random_range(0.3..0.7) * w as f32, rng.random_range(0.3..0.7) * h as f32);
+        let (cx, cy) = (
+            rng.random_range(0.3..0.7) * w as f32,
+            rng.random_range(0.3..0.7) * h as f32,
+        );
         let mut data = Vec::with_capacity(w * h * 3);
         let mut mask = Vec::with_capacity(w * h);
         for y in 0..h {
             for x in 0..w {
-                let inside = (x as f32 - cx).abs() < w as f32 * 0.2 && (y as f32 - cy).abs() < h as f32 * 0.25;
+                let inside = (x as f32 - cx).abs() < w as f32 * 0.2
+                    && (y as f32 - cy).abs() < h as f32 * 0.25;
                 let noise: u8 = rng.random_range(0..40);
-                let px = if inside { [30 + noise, 30 + noise, 35 + noise] } else { [150 + noise, 140, 110 + noise] };
+                let px = if inside {
+                    [30 + noise, 30 + noise, 35 + noise]
+                } else {
+                    [150 + noise, 140, 110 + noise]
+                };
                 data.extend_from_slice(&px);
                 mask.push(inside);
             }
@@ -866,7 +900,10 @@ mod tests {
         };
         let example = Example::new(&net, &image, &mask);
         let (_, grads) = net.loss_and_gradients(example.input.clone(), &example.target);
-        let loss_with = |net: &UNet| net.loss_and_gradients(example.input.clone(), &example.target).0;
+        let loss_with = |net: &UNet| {
+            net.loss_and_gradients(example.input.clone(), &example.target)
+                .0
+        };
         let agrees = |perturb: &dyn Fn(&mut UNet, f32), analytic: f64| -> bool {
             [3e-3f32, 1e-3, 3e-4, 1e-4].iter().any(|&eps| {
                 let mut plus = net.clone();
@@ -888,7 +925,10 @@ mod tests {
                 checked += 1;
             }
             let analytic = grads[k].bias[0] as f64;
-            assert!(agrees(&|n, e| n.layers[k].bias[0] += e, analytic), "layer {k} bias: analytic {analytic}");
+            assert!(
+                agrees(&|n, e| n.layers[k].bias[0] += e, analytic),
+                "layer {k} bias: analytic {analytic}"
+            );
             checked += 1;
         }
         assert_eq!(checked, 36);
@@ -921,7 +961,10 @@ mod tests {
             .iter()
             .map(|e| net.loss_and_gradients(e.input.clone(), &e.target).0)
             .sum::<f64>();
-        assert!(after < 0.3 * before, "loss {before} -> {after} (last steps {final_loss})");
+        assert!(
+            after < 0.3 * before,
+            "loss {before} -> {after} (last steps {final_loss})"
+        );
         let (img, truth) = tiny_image(64, 48, 99);
         let iou = crate::plane::iou(&net.mask(&img), &truth);
         assert!(iou > 0.8, "held-out IoU {iou}");
@@ -939,7 +982,10 @@ mod tests {
         // Broken files are errors naming the file.
         std::fs::write(&path, b"not a network").unwrap();
         let e = UNet::load(&path).unwrap_err().to_string();
-        assert!(e.contains("unet.safetensors") && e.contains("safetensors"), "{e}");
+        assert!(
+            e.contains("unet.safetensors") && e.contains("safetensors"),
+            "{e}"
+        );
         let other = safetensors::serialize(
             Vec::<(String, safetensors::tensor::TensorView)>::new(),
             None,

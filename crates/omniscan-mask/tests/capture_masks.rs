@@ -43,8 +43,20 @@ fn masks_match_ground_truth_are_recorded_and_resume() {
     // The paths are in capture.json and the files load as masks of the right size.
     let reloaded = Capture::load(&dir).unwrap();
     for frame in &reloaded.file.frames {
-        assert!(frame.object_mask_path.as_deref().unwrap().starts_with("masks/object/"));
-        assert!(frame.gripper_mask_path.as_deref().unwrap().starts_with("masks/gripper/"));
+        assert!(
+            frame
+                .object_mask_path
+                .as_deref()
+                .unwrap()
+                .starts_with("masks/object/")
+        );
+        assert!(
+            frame
+                .gripper_mask_path
+                .as_deref()
+                .unwrap()
+                .starts_with("masks/gripper/")
+        );
     }
     let evaluation = evaluate_capture(&reloaded).unwrap();
     for (what, value) in [
@@ -85,7 +97,13 @@ fn the_non_robot_score_rejects_the_scene_when_depth_and_motion_do_not() {
     let strict = Masker::new(&capture, None, strict_settings).unwrap();
     let loose = Masker::new(&capture, None, loose_settings).unwrap();
     let truth = |i: usize| {
-        let rel = capture.file.frames[i].gt.as_ref().unwrap().object_mask_path.clone().unwrap();
+        let rel = capture.file.frames[i]
+            .gt
+            .as_ref()
+            .unwrap()
+            .object_mask_path
+            .clone()
+            .unwrap();
         omniscan_mask::Plane::from_mask(
             &omniscan_core::image_io::read_mask(&capture.resolve(&rel)).unwrap(),
         )
@@ -93,8 +111,10 @@ fn the_non_robot_score_rejects_the_scene_when_depth_and_motion_do_not() {
     let (mut strict_iou, mut loose_iou) = (0.0, 0.0);
     for i in [0, 5, 13, 20] {
         let t = truth(i);
-        strict_iou += omniscan_mask::plane::iou(&mask_frame(&strict, &capture, i).unwrap().object, &t) / 4.0;
-        loose_iou += omniscan_mask::plane::iou(&mask_frame(&loose, &capture, i).unwrap().object, &t) / 4.0;
+        strict_iou +=
+            omniscan_mask::plane::iou(&mask_frame(&strict, &capture, i).unwrap().object, &t) / 4.0;
+        loose_iou +=
+            omniscan_mask::plane::iou(&mask_frame(&loose, &capture, i).unwrap().object, &t) / 4.0;
     }
     assert!(strict_iou > 0.95, "{strict_iou}");
     assert!(loose_iou < 0.3, "loose {loose_iou} strict {strict_iou}");
@@ -147,7 +167,10 @@ fn bad_captures_give_errors_that_name_the_problem() {
         .err()
         .unwrap()
         .to_string();
-    assert!(e.contains("finray_finger.stl") && e.contains("--gripper-dir"), "{e}");
+    assert!(
+        e.contains("finray_finger.stl") && e.contains("--gripper-dir"),
+        "{e}"
+    );
 
     // Evaluation before masking.
     let e = evaluate_capture(&capture).unwrap_err().to_string();

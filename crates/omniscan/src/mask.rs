@@ -21,6 +21,10 @@ use omniscan_mask::{MaskSettings, evaluate_capture, mask_capture};
 pub enum GripperMethod {
     /// Project the gripper model at the recorded pose and opening, checked against the sensor depth.
     Kinematic,
+    /// The paper's learned segmentation: a U-Net from `omniscan mask train-gripper` (--unet).
+    Unet,
+    /// The kinematic mask extended by the U-Net's pixels next to it (bent soft fingers).
+    Both,
 }
 
 #[derive(clap::Args)]
@@ -67,7 +71,10 @@ impl MaskSettingsArgs {
         s.object.near_margin_m = self.near_margin_m;
         s.gripper.grow_px = self.grow_px;
         if !(self.depth_noise_mm_at_1m.is_finite() && self.depth_noise_mm_at_1m >= 0.0) {
-            bail!("--depth-noise-mm-at-1m must be a non-negative number, got {}", self.depth_noise_mm_at_1m);
+            bail!(
+                "--depth-noise-mm-at-1m must be a non-negative number, got {}",
+                self.depth_noise_mm_at_1m
+            );
         }
         s.gripper.depth_noise_m_at_1m = self.depth_noise_mm_at_1m * 1e-3;
         Ok(s)
@@ -75,12 +82,19 @@ impl MaskSettingsArgs {
 }
 
 #[derive(clap::Args)]
+#[command(args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
 pub struct MaskArgs {
+    #[command(subcommand)]
+    pub command: Option<MaskCommand>,
     /// Capture directory (or its capture.json).
-    pub capture: PathBuf,
+    #[arg(required = true)]
+    pub capture: Option<PathBuf>,
     /// Gripper mask method.
     #[arg(long, value_enum, default_value = "kinematic")]
     pub gripper: GripperMethod,
+    /// The trained gripper U-Net (safetensors) for --gripper unet|both.
+    #[arg(long)]
+    pub unet: Option<PathBuf>,
     #[command(flatten)]
     pub settings: MaskSettingsArgs,
     /// Compare the masks with the simulator's ground truth (mean IoU per arm).
@@ -91,12 +105,149 @@ pub struct MaskArgs {
     pub json: bool,
 }
 
+#[derive(clap::Subcommand)]
+pub enum MaskCommand {
+    /// Train the gripper U-Net on simulated captures' ground-truth gripper masks.
+    TrainGripper(TrainGripperArgs),
+}
+
+#[derive(clap::Args)]
+pub struct TrainGripperArgs {
+    /// Simulated captures to learn from (their frames and empty-gripper frames).
+    #[arg(required = true)]
+    pub captures: Vec<PathBuf>,
+    /// Where to write the network (safetensors).
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long, default_value_t = 800)]
+    pub steps: usize,
+    /// Images per step.
+    #[arg(long, default_value_t = 8)]
+    pub batch: usize,
+    #[arg(long, default_value_t = 3e-3)]
+    pub learning_rate: f32,
+    /// Working width of the network, pixels (a multiple of 4).
+    #[arg(long, default_value_t = 160)]
+    pub width: usize,
+    /// Working height of the network, pixels (a multiple of 4).
+    #[arg(long, default_value_t = 120)]
+    pub height: usize,
+    /// Use every n-th image of each capture.
+    #[arg(long, default_value_t = 1)]
+    pub every: usize,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn train_gripper(args: TrainGripperArgs) -> Result<()> {
+    use omniscan_mask::unet::{TrainSettings, UNet, train};
+    if args.steps == 0 || args.batch == 0 || args.every == 0 {
+        bail!("--steps, --batch and --every must be at least 1");
+    }
+    if !(args.learning_rate.is_finite() && args.learning_rate > 0.0) {
+        bail!("--learning-rate must be a positive number");
+    }
+    let mut net = UNet::new(args.width, args.height, [8, 16, 32], args.seed)?;
+    let captures = args
+        .captures
+        .iter()
+        .map(|c| Capture::load(c))
+        .collect::<std::result::Result<Vec<_>, _>>()?;
+    let (examples, held_out) =
+        omniscan_mask::pipeline::gripper_training_set(&net, &captures, args.every)?;
+    eprintln!(
+        "training on {} images, {} held out, at {}x{}",
+        examples.len(),
+        held_out.len(),
+        args.width,
+        args.height
+    );
+    let settings = TrainSettings {
+        steps: args.steps,
+        batch: args.batch,
+        learning_rate: args.learning_rate,
+        seed: args.seed,
+    };
+    let bar = indicatif::ProgressBar::new(args.steps as u64);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "training [{bar:40}] {pos}/{len} steps, {msg} ({eta})",
+        )
+        .unwrap()
+        .progress_chars("=> "),
+    );
+    let start = Instant::now();
+    let final_loss = train(&mut net, &examples, &settings, &|step, loss| {
+        bar.set_position(step as u64);
+        bar.set_message(format!("loss {loss:.4}"));
+    })?;
+    bar.finish_and_clear();
+    let seconds = start.elapsed().as_secs_f64();
+    net.save(&args.out)?;
+    let ious: Vec<f64> = held_out
+        .par_iter()
+        .map(|(image, truth)| iou(&net.mask(image), truth))
+        .collect();
+    let mean_iou = ious.iter().sum::<f64>() / ious.len().max(1) as f64;
+    let min_iou = ious.iter().cloned().fold(1.0, f64::min);
+    if args.json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&json!({
+                "out": args.out, "training_images": examples.len(), "held_out_images": held_out.len(),
+                "final_loss": final_loss, "held_out_gripper_miou": mean_iou, "held_out_min_iou": min_iou,
+                "seconds": seconds, "settings": settings,
+            }))?
+        );
+    } else {
+        println!(
+            "wrote {}: final loss {final_loss:.4}; held-out gripper mIoU {mean_iou:.4} (lowest {min_iou:.3}) over {} images; {seconds:.0} s",
+            args.out.display(),
+            held_out.len()
+        );
+    }
+    Ok(())
+}
+
+fn with_method(
+    masker: Masker,
+    method: GripperMethod,
+    unet: Option<&std::path::Path>,
+) -> Result<Masker> {
+    Ok(match (method, unet) {
+        (GripperMethod::Kinematic, None) => masker,
+        (GripperMethod::Kinematic, Some(_)) => {
+            bail!("--unet is used only with --gripper unet or --gripper both")
+        }
+        (_, None) => {
+            bail!("--gripper unet|both needs --unet FILE (from `omniscan mask train-gripper`)")
+        }
+        (method, Some(file)) => masker.with_unet(file, method == GripperMethod::Both)?,
+    })
+}
+
 pub fn run(args: MaskArgs) -> Result<()> {
-    let mut capture = Capture::load(&args.capture)?;
-    let masker = Masker::new(&capture, args.settings.gripper_dir.as_deref(), args.settings.settings()?)?;
+    if let Some(MaskCommand::TrainGripper(train_args)) = args.command {
+        return train_gripper(train_args);
+    }
+    let capture_path = args.capture.context("a capture directory is required")?;
+    let mut capture = Capture::load(&capture_path)?;
+    let masker = with_method(
+        Masker::new(
+            &capture,
+            args.settings.gripper_dir.as_deref(),
+            args.settings.settings()?,
+        )?,
+        args.gripper,
+        args.unet.as_deref(),
+    )?;
     let bar = crate::progress_bar(capture.file.frames.len(), "masking");
-    let summary = mask_capture(&mut capture, &masker, &|done, _| bar.set_position(done as u64))
-        .with_context(|| format!("masking {} failed", capture.dir.display()))?;
+    let summary = mask_capture(&mut capture, &masker, &|done, _| {
+        bar.set_position(done as u64)
+    })
+    .with_context(|| format!("masking {} failed", capture.dir.display()))?;
     bar.finish_and_clear();
     let evaluation = if args.eval {
         Some(evaluate_capture(&capture)?)
@@ -115,7 +266,10 @@ pub fn run(args: MaskArgs) -> Result<()> {
             summary.computed,
             summary.resumed,
             summary.seconds,
-            capture.dir.join(omniscan_mask::pipeline::MASK_DIR).display()
+            capture
+                .dir
+                .join(omniscan_mask::pipeline::MASK_DIR)
+                .display()
         );
         if let Some(e) = evaluation {
             let f = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.4}"));
@@ -150,6 +304,12 @@ pub struct BenchArgs {
     /// Seed of the pose perturbations.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Gripper mask method.
+    #[arg(long, value_enum, default_value = "kinematic")]
+    pub gripper: GripperMethod,
+    /// The trained gripper U-Net (safetensors) for --gripper unet|both.
+    #[arg(long)]
+    pub unet: Option<PathBuf>,
     #[command(flatten)]
     pub settings: MaskSettingsArgs,
     #[arg(long)]
@@ -172,7 +332,11 @@ fn perturb_poses(capture: &mut Capture, mm: f64, deg: f64, seed: u64) {
             break v.normalize();
         }
     };
-    let frames = capture.file.frames.iter_mut().chain(capture.file.empty_frames.iter_mut());
+    let frames = capture
+        .file
+        .frames
+        .iter_mut()
+        .chain(capture.file.empty_frames.iter_mut());
     for frame in frames {
         let error = nalgebra::Isometry3::from_parts(
             Translation3::from(unit() * mm * 1e-3),
@@ -193,9 +357,22 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     for path in &args.captures {
         let mut capture = Capture::load(path)?;
         if args.pose_error_mm != 0.0 || args.pose_error_deg != 0.0 {
-            perturb_poses(&mut capture, args.pose_error_mm, args.pose_error_deg, args.seed);
+            perturb_poses(
+                &mut capture,
+                args.pose_error_mm,
+                args.pose_error_deg,
+                args.seed,
+            );
         }
-        let masker = Masker::new(&capture, args.settings.gripper_dir.as_deref(), settings.clone())?;
+        let masker = with_method(
+            Masker::new(
+                &capture,
+                args.settings.gripper_dir.as_deref(),
+                settings.clone(),
+            )?,
+            args.gripper,
+            args.unet.as_deref(),
+        )?;
         let frames: Vec<usize> = (0..capture.file.frames.len()).step_by(args.every).collect();
         // Latency: one frame at a time (each stage may still use both cores).
         let latency_frames: Vec<usize> = frames.iter().copied().take(10).collect();
@@ -229,7 +406,9 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         let throughput_s = start.elapsed().as_secs_f64() / frames.len().max(1) as f64;
         bar.finish_and_clear();
         let n = results.len().max(1) as f64;
-        let mean = |f: &dyn Fn(&(usize, f64, f64, FrameTimings)) -> f64| results.iter().map(f).sum::<f64>() / n;
+        let mean = |f: &dyn Fn(&(usize, f64, f64, FrameTimings)) -> f64| {
+            results.iter().map(f).sum::<f64>() / n
+        };
         let per_arm = |arm: Arm, f: &dyn Fn(&(usize, f64, f64, FrameTimings)) -> f64| {
             let v: Vec<f64> = results
                 .iter()
@@ -239,7 +418,10 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             v.iter().sum::<f64>() / v.len().max(1) as f64
         };
         let worst = |f: &dyn Fn(&(usize, f64, f64, FrameTimings)) -> f64| {
-            let mut v: Vec<_> = results.iter().map(|r| (f(r), capture.file.frames[r.0].file_path.clone())).collect();
+            let mut v: Vec<_> = results
+                .iter()
+                .map(|r| (f(r), capture.file.frames[r.0].file_path.clone()))
+                .collect();
             v.sort_by(|a, b| a.0.total_cmp(&b.0));
             v.truncate(3);
             v
@@ -260,6 +442,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             "size": [w, h],
             "pose_error_mm": args.pose_error_mm,
             "pose_error_deg": args.pose_error_deg,
+            "gripper_method": masker.settings.gripper_method,
             "frames": results.len(),
             "object_miou": {"left": per_arm(Arm::Left, &|r| r.1), "right": per_arm(Arm::Right, &|r| r.1)},
             "gripper_miou": {"left": per_arm(Arm::Left, &|r| r.2), "right": per_arm(Arm::Right, &|r| r.2)},
@@ -305,7 +488,10 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         }
     }
     if args.json {
-        println!("{}", serde_json::to_string_pretty(&json!({ "captures": rows }))?);
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&json!({ "captures": rows }))?
+        );
     }
     Ok(())
 }

@@ -499,7 +499,11 @@ fn mask_writes_masks_records_them_and_reports_iou_per_arm() {
     let capture = tmp.path().join("cap");
     tiny_capture(&capture);
     let out = omniscan(&["mask", capture.to_str().unwrap(), "--eval", "--json"]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     for kind in ["object_miou", "gripper_miou"] {
         for arm in ["left", "right"] {
