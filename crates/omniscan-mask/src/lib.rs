@@ -20,6 +20,9 @@
 //!   recorded in `capture.json`, resumable; and evaluation against the
 //!   simulator's ground truth.
 
+// Pixel loops index several planes by the same index; iterators would hide that.
+#![allow(clippy::needless_range_loop)]
+
 pub mod flow;
 pub mod gripper;
 pub mod object;

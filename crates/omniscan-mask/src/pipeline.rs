@@ -164,7 +164,7 @@ fn frame_label(capture: &Capture, index: usize) -> String {
 
 /// The empty-gripper frame at the same pose as frame `index`: the same arm
 /// and trajectory position, else the same position in the arm's list.
-fn empty_partner<'a>(capture: &'a Capture, index: usize) -> Result<&'a Frame> {
+fn empty_partner(capture: &Capture, index: usize) -> Result<&Frame> {
     let frame = &capture.file.frames[index];
     let empties: Vec<&Frame> = capture
         .file
@@ -554,6 +554,9 @@ pub fn evaluate_capture(capture: &Capture) -> Result<Evaluation> {
     })
 }
 
+/// An image with its ground-truth gripper mask.
+pub type LabelledImage = (RgbImage, Plane<bool>);
+
 /// Labelled examples for the gripper U-Net from simulated captures: every
 /// `every`-th frame and empty-gripper frame with its ground-truth gripper
 /// mask. Frames whose index in that list is a multiple of 8 are held out and
@@ -562,7 +565,7 @@ pub fn gripper_training_set(
     net: &UNet,
     captures: &[Capture],
     every: usize,
-) -> Result<(Vec<Example>, Vec<(RgbImage, Plane<bool>)>)> {
+) -> Result<(Vec<Example>, Vec<LabelledImage>)> {
     let mut items: Vec<(&Capture, &Frame)> = Vec::new();
     for capture in captures {
         for frame in capture

@@ -338,7 +338,11 @@ impl UNet {
         channels: [usize; 3],
         seed: u64,
     ) -> Result<UNet> {
-        if input_width % 4 != 0 || input_height % 4 != 0 || input_width < 8 || input_height < 8 {
+        if !input_width.is_multiple_of(4)
+            || !input_height.is_multiple_of(4)
+            || input_width < 8
+            || input_height < 8
+        {
             return Err(MaskError::Invalid(format!(
                 "the U-Net's working size must be multiples of 4 and at least 8, got {input_width}x{input_height}"
             )));

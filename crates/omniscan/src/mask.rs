@@ -346,6 +346,9 @@ fn perturb_poses(capture: &mut Capture, mm: f64, deg: f64, seed: u64) {
     }
 }
 
+/// Frame index, object IoU, gripper IoU, stage times.
+type BenchRow = (usize, f64, f64, FrameTimings);
+
 /// Masks captures in memory (nothing is written), timing each stage and
 /// scoring against ground truth.
 pub fn bench(args: BenchArgs) -> Result<()> {
@@ -384,7 +387,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         // Throughput: frames in parallel, as `omniscan mask` runs them.
         let bar = crate::progress_bar(frames.len(), "bench mask");
         let start = Instant::now();
-        let results: Vec<(usize, f64, f64, FrameTimings)> = frames
+        let results: Vec<BenchRow> = frames
             .par_iter()
             .map(|&i| -> Result<_> {
                 let m = mask_frame(&masker, &capture, i)?;
@@ -406,10 +409,8 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         let throughput_s = start.elapsed().as_secs_f64() / frames.len().max(1) as f64;
         bar.finish_and_clear();
         let n = results.len().max(1) as f64;
-        let mean = |f: &dyn Fn(&(usize, f64, f64, FrameTimings)) -> f64| {
-            results.iter().map(f).sum::<f64>() / n
-        };
-        let per_arm = |arm: Arm, f: &dyn Fn(&(usize, f64, f64, FrameTimings)) -> f64| {
+        let mean = |f: &dyn Fn(&BenchRow) -> f64| results.iter().map(f).sum::<f64>() / n;
+        let per_arm = |arm: Arm, f: &dyn Fn(&BenchRow) -> f64| {
             let v: Vec<f64> = results
                 .iter()
                 .filter(|r| capture.file.frames[r.0].arm == arm)
@@ -417,7 +418,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 .collect();
             v.iter().sum::<f64>() / v.len().max(1) as f64
         };
-        let worst = |f: &dyn Fn(&(usize, f64, f64, FrameTimings)) -> f64| {
+        let worst = |f: &dyn Fn(&BenchRow) -> f64| {
             let mut v: Vec<_> = results
                 .iter()
                 .map(|r| (f(r), capture.file.frames[r.0].file_path.clone()))
