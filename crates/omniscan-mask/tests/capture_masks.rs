@@ -176,3 +176,63 @@ fn bad_captures_give_errors_that_name_the_problem() {
     let e = evaluate_capture(&capture).unwrap_err().to_string();
     assert!(e.contains("run the masking first"), "{e}");
 }
+
+#[test]
+fn the_learned_gripper_path_trains_saves_and_masks() {
+    use omniscan_mask::plane::iou;
+    use omniscan_mask::unet::{TrainSettings, UNet, train};
+    let tmp = tempfile::tempdir().unwrap();
+    let capture = simulate(&tmp.path().join("c"), "builtin:remote", 8);
+    let mut net = UNet::new(64, 48, [4, 8, 8], 0).unwrap();
+    let (examples, held_out) =
+        omniscan_mask::pipeline::gripper_training_set(&net, std::slice::from_ref(&capture), 1)
+            .unwrap();
+    assert_eq!(examples.len() + held_out.len(), 48);
+    let settings = TrainSettings {
+        steps: 200,
+        batch: 4,
+        learning_rate: 1e-2,
+        seed: 2,
+    };
+    train(&mut net, &examples, &settings, &|_, _| {}).unwrap();
+    let held_out_iou = held_out
+        .iter()
+        .map(|(image, truth)| iou(&net.mask(image), truth))
+        .sum::<f64>()
+        / held_out.len() as f64;
+    assert!(held_out_iou > 0.6, "held-out gripper IoU {held_out_iou}");
+
+    let file = tmp.path().join("gripper.safetensors");
+    net.save(&file).unwrap();
+    let truth = |i: usize| {
+        let rel = capture.file.frames[i].gt.as_ref().unwrap().gripper_mask_path.clone().unwrap();
+        omniscan_mask::Plane::from_mask(
+            &omniscan_core::image_io::read_mask(&capture.resolve(&rel)).unwrap(),
+        )
+    };
+    let kinematic = Masker::new(&capture, None, MaskSettings::default()).unwrap();
+    let learned = Masker::new(&capture, None, MaskSettings::default())
+        .unwrap()
+        .with_unet(&file, false)
+        .unwrap();
+    let both = Masker::new(&capture, None, MaskSettings::default())
+        .unwrap()
+        .with_unet(&file, true)
+        .unwrap();
+    assert!(learned.settings.gripper_method.starts_with("unet:"));
+    let (mut learned_iou, mut kinematic_iou) = (0.0, 0.0);
+    for i in [1, 7, 14, 20] {
+        let k = mask_frame(&kinematic, &capture, i).unwrap();
+        let l = mask_frame(&learned, &capture, i).unwrap();
+        let b = mask_frame(&both, &capture, i).unwrap();
+        learned_iou += iou(&l.gripper, &truth(i)) / 4.0;
+        kinematic_iou += iou(&k.gripper, &truth(i)) / 4.0;
+        // `both` only adds to the kinematic mask, and only next to it.
+        assert!(k.gripper.data.iter().zip(&b.gripper.data).all(|(&k, &b)| !k || b));
+        let reach = k.gripper.dilate(4);
+        assert!(b.gripper.data.iter().zip(&reach.data).all(|(&b, &r)| !b || r));
+    }
+    // A U-Net this small and briefly trained is far from the kinematic mask.
+    assert!(learned_iou > 0.5, "learned {learned_iou}");
+    assert!(kinematic_iou > 0.95 && kinematic_iou > learned_iou, "kinematic {kinematic_iou}");
+}
