@@ -205,7 +205,13 @@ fn the_learned_gripper_path_trains_saves_and_masks() {
     let file = tmp.path().join("gripper.safetensors");
     net.save(&file).unwrap();
     let truth = |i: usize| {
-        let rel = capture.file.frames[i].gt.as_ref().unwrap().gripper_mask_path.clone().unwrap();
+        let rel = capture.file.frames[i]
+            .gt
+            .as_ref()
+            .unwrap()
+            .gripper_mask_path
+            .clone()
+            .unwrap();
         omniscan_mask::Plane::from_mask(
             &omniscan_core::image_io::read_mask(&capture.resolve(&rel)).unwrap(),
         )
@@ -228,11 +234,26 @@ fn the_learned_gripper_path_trains_saves_and_masks() {
         learned_iou += iou(&l.gripper, &truth(i)) / 4.0;
         kinematic_iou += iou(&k.gripper, &truth(i)) / 4.0;
         // `both` only adds to the kinematic mask, and only next to it.
-        assert!(k.gripper.data.iter().zip(&b.gripper.data).all(|(&k, &b)| !k || b));
+        assert!(
+            k.gripper
+                .data
+                .iter()
+                .zip(&b.gripper.data)
+                .all(|(&k, &b)| !k || b)
+        );
         let reach = k.gripper.dilate(4);
-        assert!(b.gripper.data.iter().zip(&reach.data).all(|(&b, &r)| !b || r));
+        assert!(
+            b.gripper
+                .data
+                .iter()
+                .zip(&reach.data)
+                .all(|(&b, &r)| !b || r)
+        );
     }
     // A U-Net this small and briefly trained is far from the kinematic mask.
     assert!(learned_iou > 0.5, "learned {learned_iou}");
-    assert!(kinematic_iou > 0.95 && kinematic_iou > learned_iou, "kinematic {kinematic_iou}");
+    assert!(
+        kinematic_iou > 0.95 && kinematic_iou > learned_iou,
+        "kinematic {kinematic_iou}"
+    );
 }
