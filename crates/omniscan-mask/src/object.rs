@@ -252,48 +252,10 @@ fn depth_connected(
     gripper: &Plane<bool>,
     depth_jump_m: f32,
 ) -> (Plane<u32>, Vec<usize>) {
-    let (w, h) = (region.width, region.height);
-    let mut labels = vec![u32::MAX; w * h];
-    let mut sizes = Vec::new();
-    let mut stack = Vec::new();
-    for start in 0..w * h {
-        if !region.data[start] || labels[start] != u32::MAX {
-            continue;
-        }
-        let label = sizes.len() as u32;
-        labels[start] = label;
-        stack.push(start);
-        let mut size = 0;
-        while let Some(i) = stack.pop() {
-            size += 1;
-            let (x, y) = (i % w, i / w);
-            let neighbours = [
-                (x > 0).then(|| i - 1),
-                (x + 1 < w).then(|| i + 1),
-                (y > 0).then(|| i - w),
-                (y + 1 < h).then(|| i + w),
-            ];
-            for j in neighbours.into_iter().flatten() {
-                if region.data[j]
-                    && labels[j] == u32::MAX
-                    && gripper.data[j] == gripper.data[i]
-                    && (depth_m.data[j] - depth_m.data[i]).abs() <= depth_jump_m
-                {
-                    labels[j] = label;
-                    stack.push(j);
-                }
-            }
-        }
-        sizes.push(size);
-    }
-    (
-        Plane {
-            width: w,
-            height: h,
-            data: labels,
-        },
-        sizes,
-    )
+    region.components_joined_by(|i, j| {
+        gripper.data[j] == gripper.data[i]
+            && (depth_m.data[j] - depth_m.data[i]).abs() <= depth_jump_m
+    })
 }
 
 #[cfg(test)]

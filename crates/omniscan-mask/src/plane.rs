@@ -222,6 +222,15 @@ impl Plane<bool> {
     /// 4-connected components of set pixels: a label per pixel (`u32::MAX`
     /// for unset pixels) and the size of each component.
     pub fn components(&self) -> (Plane<u32>, Vec<usize>) {
+        self.components_joined_by(|_, _| true)
+    }
+
+    /// 4-connected components of set pixels where neighbours `i` and `j`
+    /// (pixel indices) belong together only when `joins(i, j)`.
+    pub fn components_joined_by(
+        &self,
+        joins: impl Fn(usize, usize) -> bool,
+    ) -> (Plane<u32>, Vec<usize>) {
         let (w, h) = (self.width, self.height);
         let mut labels = vec![u32::MAX; w * h];
         let mut sizes = Vec::new();
@@ -238,7 +247,7 @@ impl Plane<bool> {
                 size += 1;
                 let (x, y) = (i % w, i / w);
                 let mut visit = |j: usize| {
-                    if self.data[j] && labels[j] == u32::MAX {
+                    if self.data[j] && labels[j] == u32::MAX && joins(i, j) {
                         labels[j] = label;
                         stack.push(j);
                     }

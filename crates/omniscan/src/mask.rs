@@ -29,6 +29,12 @@ pub enum GripperMethod {
 
 #[derive(clap::Args)]
 pub struct MaskSettingsArgs {
+    /// Gripper mask method.
+    #[arg(long, value_enum, default_value = "kinematic")]
+    pub gripper: GripperMethod,
+    /// The trained gripper U-Net (safetensors) for --gripper unet|both.
+    #[arg(long)]
+    pub unet: Option<PathBuf>,
     /// Directory with the robot's gripper meshes (default: the one recorded by the simulator, else the built-in model).
     #[arg(long)]
     pub gripper_dir: Option<PathBuf>,
@@ -89,12 +95,6 @@ pub struct MaskArgs {
     /// Capture directory (or its capture.json).
     #[arg(required = true)]
     pub capture: Option<PathBuf>,
-    /// Gripper mask method.
-    #[arg(long, value_enum, default_value = "kinematic")]
-    pub gripper: GripperMethod,
-    /// The trained gripper U-Net (safetensors) for --gripper unet|both.
-    #[arg(long)]
-    pub unet: Option<PathBuf>,
     #[command(flatten)]
     pub settings: MaskSettingsArgs,
     /// Compare the masks with the simulator's ground truth (mean IoU per arm).
@@ -240,8 +240,8 @@ pub fn run(args: MaskArgs) -> Result<()> {
             args.settings.gripper_dir.as_deref(),
             args.settings.settings()?,
         )?,
-        args.gripper,
-        args.unet.as_deref(),
+        args.settings.gripper,
+        args.settings.unet.as_deref(),
     )?;
     let bar = crate::progress_bar(capture.file.frames.len(), "masking");
     let summary = mask_capture(&mut capture, &masker, &|done, _| {
@@ -304,12 +304,6 @@ pub struct BenchArgs {
     /// Seed of the pose perturbations.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Gripper mask method.
-    #[arg(long, value_enum, default_value = "kinematic")]
-    pub gripper: GripperMethod,
-    /// The trained gripper U-Net (safetensors) for --gripper unet|both.
-    #[arg(long)]
-    pub unet: Option<PathBuf>,
     #[command(flatten)]
     pub settings: MaskSettingsArgs,
     #[arg(long)]
@@ -373,8 +367,8 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 args.settings.gripper_dir.as_deref(),
                 settings.clone(),
             )?,
-            args.gripper,
-            args.unet.as_deref(),
+            args.settings.gripper,
+            args.settings.unet.as_deref(),
         )?;
         let frames: Vec<usize> = (0..capture.file.frames.len()).step_by(args.every).collect();
         // Latency: one frame at a time (each stage may still use both cores).
