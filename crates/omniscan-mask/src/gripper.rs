@@ -249,21 +249,24 @@ fn align_to_depth(
     if pixels.is_empty() {
         return projection.clone();
     }
-    let score = |dx: i64, dy: i64| -> usize {
-        pixels
-            .iter()
-            .filter(|&&(x, y, model)| {
-                let (sx, sy) = (x as i64 + dx, y as i64 + dy);
-                if sx < 0 || sy < 0 || sx >= w as i64 || sy >= h as i64 {
-                    return false;
-                }
-                let sensor = sensor_depth_m.data[sy as usize * w + sx as usize];
-                sensor > 0.0 && (sensor - model).abs() <= settings.align_tolerance_m
-            })
-            .count()
+    // Index of pixel (x, y) moved by (dx, dy), if still inside the image.
+    let shifted = |x: usize, y: usize, dx: i64, dy: i64| -> Option<usize> {
+        let (sx, sy) = (x as i64 + dx, y as i64 + dy);
+        (sx >= 0 && sy >= 0 && sx < w as i64 && sy < h as i64)
+            .then(|| sy as usize * w + sx as usize)
     };
+    // Sensor-minus-model depth of every shifted pixel that agrees with the sensor.
+    let agreeing = |dx: i64, dy: i64| {
+        pixels.iter().filter_map(move |&(x, y, model)| {
+            let sensor = sensor_depth_m.data[shifted(x, y, dx, dy)?];
+            (sensor > 0.0 && (sensor - model).abs() <= settings.align_tolerance_m)
+                .then_some(sensor - model)
+        })
+    };
+    let score = |dx: i64, dy: i64| agreeing(dx, dy).count();
     let reach = settings.align_search_px as i64;
-    let mut best = ((0i64, 0i64), score(0, 0));
+    let unshifted = score(0, 0);
+    let mut best = ((0i64, 0i64), unshifted);
     let consider = |dx: i64, dy: i64, best: &mut ((i64, i64), usize)| {
         let s = score(dx, dy);
         if s > best.1 {
@@ -285,24 +288,12 @@ fn align_to_depth(
     // A shift must explain clearly more pixels than the recorded pose does:
     // with an exact calibration, occlusions and noise make small gains
     // elsewhere that are not worth a move.
-    let unshifted = score(0, 0);
-    let ((dx, dy), _) = if best.1 as f64 > unshifted as f64 * 1.005 + 10.0 {
-        best
+    let (dx, dy) = if best.1 as f64 > unshifted as f64 * 1.005 + 10.0 {
+        best.0
     } else {
-        ((0, 0), unshifted)
+        (0, 0)
     };
-    let mut offsets: Vec<f32> = pixels
-        .iter()
-        .filter_map(|&(x, y, model)| {
-            let (sx, sy) = (x as i64 + dx, y as i64 + dy);
-            if sx < 0 || sy < 0 || sx >= w as i64 || sy >= h as i64 {
-                return None;
-            }
-            let sensor = sensor_depth_m.data[sy as usize * w + sx as usize];
-            (sensor > 0.0 && (sensor - model).abs() <= settings.align_tolerance_m)
-                .then_some(sensor - model)
-        })
-        .collect();
+    let mut offsets: Vec<f32> = agreeing(dx, dy).collect();
     let offset = if offsets.is_empty() {
         0.0
     } else {
@@ -314,13 +305,10 @@ fn align_to_depth(
         depth_m: Plane::filled(w, h, 0.0),
     };
     for &(x, y, model) in &pixels {
-        let (sx, sy) = (x as i64 + dx, y as i64 + dy);
-        if sx < 0 || sy < 0 || sx >= w as i64 || sy >= h as i64 {
-            continue;
+        if let Some(j) = shifted(x, y, dx, dy) {
+            out.mask.data[j] = true;
+            out.depth_m.data[j] = model + offset;
         }
-        let j = sy as usize * w + sx as usize;
-        out.mask.data[j] = true;
-        out.depth_m.data[j] = model + offset;
     }
     out
 }

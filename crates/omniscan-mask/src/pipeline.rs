@@ -62,8 +62,6 @@ impl FrameTimings {
 pub struct FrameMasks {
     pub object: Plane<bool>,
     pub gripper: Plane<bool>,
-    pub candidates: usize,
-    pub kept_candidates: usize,
     pub timings: FrameTimings,
 }
 
@@ -345,8 +343,6 @@ pub fn mask_frame(masker: &Masker, capture: &Capture, index: usize) -> Result<Fr
     let object = object_mask(&inputs, masker.proposer.as_ref(), &masker.settings.object)?;
     let object_s = t.elapsed().as_secs_f64();
     Ok(FrameMasks {
-        kept_candidates: object.candidates.iter().filter(|c| c.kept).count(),
-        candidates: object.candidates.len(),
         object: object.mask,
         gripper,
         timings: FrameTimings {
@@ -486,12 +482,10 @@ pub struct Evaluation {
 
 /// Compares the masks recorded in `capture.json` with the ground truth.
 pub fn evaluate_capture(capture: &Capture) -> Result<Evaluation> {
-    let scores: Vec<FrameScore> = capture
-        .file
-        .frames
-        .par_iter()
-        .enumerate()
-        .map(|(i, frame)| -> Result<FrameScore> {
+    let scores: Vec<FrameScore> = (0..capture.file.frames.len())
+        .into_par_iter()
+        .map(|i| -> Result<FrameScore> {
+            let frame = &capture.file.frames[i];
             let read = |rel: Option<&String>, what: &str| -> Result<Plane<bool>> {
                 let rel = rel.ok_or_else(|| {
                     MaskError::Invalid(format!("{}: no {what}", frame_label(capture, i)))
@@ -500,12 +494,6 @@ pub fn evaluate_capture(capture: &Capture) -> Result<Evaluation> {
                     &capture.resolve(rel),
                 )?))
             };
-            let gt = frame.gt.as_ref().ok_or_else(|| {
-                MaskError::Invalid(format!(
-                    "{}: no ground truth; --eval needs a simulated capture",
-                    frame_label(capture, i)
-                ))
-            })?;
             let object = read(
                 frame.object_mask_path.as_ref(),
                 "object_mask_path (run the masking first)",
@@ -514,30 +502,60 @@ pub fn evaluate_capture(capture: &Capture) -> Result<Evaluation> {
                 frame.gripper_mask_path.as_ref(),
                 "gripper_mask_path (run the masking first)",
             )?;
-            let object_truth = read(gt.object_mask_path.as_ref(), "gt.object_mask_path")?;
-            let gripper_truth = read(gt.gripper_mask_path.as_ref(), "gt.gripper_mask_path")?;
-            Ok(FrameScore {
-                frame: i,
-                file: frame.file_path.clone(),
-                arm: frame.arm,
-                object_iou: iou(&object, &object_truth),
-                gripper_iou: iou(&gripper, &gripper_truth),
-                object_pixels: object_truth.count(),
-            })
+            score_frame(capture, i, &object, &gripper)
         })
         .collect::<Result<_>>()?;
+    Ok(summarise(&scores))
+}
+
+/// IoUs of frame `index`'s masks against its ground truth.
+pub fn score_frame(
+    capture: &Capture,
+    index: usize,
+    object: &Plane<bool>,
+    gripper: &Plane<bool>,
+) -> Result<FrameScore> {
+    let frame = &capture.file.frames[index];
+    let gt = frame.gt.as_ref().ok_or_else(|| {
+        MaskError::Invalid(format!(
+            "{}: no ground truth; --eval needs a simulated capture",
+            frame_label(capture, index)
+        ))
+    })?;
+    let read = |rel: Option<&String>, what: &str| -> Result<Plane<bool>> {
+        let rel = rel.ok_or_else(|| {
+            MaskError::Invalid(format!("{}: no {what}", frame_label(capture, index)))
+        })?;
+        Ok(Plane::from_mask(&image_io::read_mask(
+            &capture.resolve(rel),
+        )?))
+    };
+    let object_truth = read(gt.object_mask_path.as_ref(), "gt.object_mask_path")?;
+    let gripper_truth = read(gt.gripper_mask_path.as_ref(), "gt.gripper_mask_path")?;
+    Ok(FrameScore {
+        frame: index,
+        file: frame.file_path.clone(),
+        arm: frame.arm,
+        object_iou: iou(object, &object_truth),
+        gripper_iou: iou(gripper, &gripper_truth),
+        object_pixels: object_truth.count(),
+    })
+}
+
+/// Per-arm means, lowest values and worst frames of frame scores.
+pub fn summarise(scores: &[FrameScore]) -> Evaluation {
     let mean = |arm: Arm, f: fn(&FrameScore) -> f64| -> Option<f64> {
         let v: Vec<f64> = scores.iter().filter(|s| s.arm == arm).map(f).collect();
         (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
     };
     let worst = |f: fn(&FrameScore) -> f64| -> Vec<FrameScore> {
-        let mut sorted = scores.clone();
+        let mut sorted = scores.to_vec();
         sorted.sort_by(|a, b| f(a).total_cmp(&f(b)));
         sorted.truncate(5);
         sorted
     };
     let min = |f: fn(&FrameScore) -> f64| scores.iter().map(f).fold(1.0, f64::min);
-    Ok(Evaluation {
+    Evaluation {
         object_miou: PerArm {
             left: mean(Arm::Left, |s| s.object_iou),
             right: mean(Arm::Right, |s| s.object_iou),
@@ -551,7 +569,7 @@ pub fn evaluate_capture(capture: &Capture) -> Result<Evaluation> {
         frames: scores.len(),
         worst_object: worst(|s| s.object_iou),
         worst_gripper: worst(|s| s.gripper_iou),
-    })
+    }
 }
 
 /// An image with its ground-truth gripper mask.

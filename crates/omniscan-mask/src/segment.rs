@@ -107,7 +107,7 @@ impl Forest {
         }
         i
     }
-    fn union(&mut self, a: u32, b: u32, weight: f32) -> u32 {
+    fn union(&mut self, a: u32, b: u32, weight: f32) {
         let (big, small) = if self.size[a as usize] >= self.size[b as usize] {
             (a, b)
         } else {
@@ -118,7 +118,6 @@ impl Forest {
         self.internal[big as usize] = weight
             .max(self.internal[big as usize])
             .max(self.internal[small as usize]);
-        big
     }
 }
 

@@ -379,9 +379,9 @@ impl UNet {
         let mut t = Tensor::zeros(3, h, w);
         let (iw, ih) = (image.width as usize, image.height as usize);
         for y in 0..h {
-            let (y0, y1) = (y * ih / h, ((y + 1) * ih / h).max(y * ih / h + 1));
+            let (y0, y1) = source_span(y, h, ih);
             for x in 0..w {
-                let (x0, x1) = (x * iw / w, ((x + 1) * iw / w).max(x * iw / w + 1));
+                let (x0, x1) = source_span(x, w, iw);
                 let mut sum = [0f32; 3];
                 for sy in y0..y1 {
                     for sx in x0..x1 {
@@ -650,6 +650,13 @@ impl UNet {
     }
 }
 
+/// The source pixels `lo..hi` that output pixel `i` of `out` averages when
+/// `src` pixels are resized to `out` (at least one).
+fn source_span(i: usize, out: usize, src: usize) -> (usize, usize) {
+    let lo = i * src / out;
+    (lo, ((i + 1) * src / out).max(lo + 1))
+}
+
 #[inline]
 fn sigmoid(z: f32) -> f32 {
     1.0 / (1.0 + (-z).exp())
@@ -670,9 +677,9 @@ impl Example {
         let (iw, ih) = (mask.width, mask.height);
         let mut target = vec![0f32; w * h];
         for y in 0..h {
-            let (y0, y1) = (y * ih / h, ((y + 1) * ih / h).max(y * ih / h + 1));
+            let (y0, y1) = source_span(y, h, ih);
             for x in 0..w {
-                let (x0, x1) = (x * iw / w, ((x + 1) * iw / w).max(x * iw / w + 1));
+                let (x0, x1) = source_span(x, w, iw);
                 let mut set = 0;
                 for sy in y0..y1 {
                     for sx in x0..x1 {

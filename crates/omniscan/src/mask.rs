@@ -10,10 +10,11 @@ use clap::ValueEnum;
 use rayon::prelude::*;
 use serde_json::json;
 
-use omniscan_core::capture::{Arm, Capture};
-use omniscan_core::image_io::read_mask;
-use omniscan_mask::pipeline::{FrameTimings, Masker, mask_frame};
-use omniscan_mask::plane::{Plane, iou};
+use omniscan_core::capture::Capture;
+use omniscan_mask::pipeline::{
+    FrameScore, FrameTimings, Masker, mask_frame, score_frame, summarise,
+};
+use omniscan_mask::plane::iou;
 use omniscan_mask::{MaskSettings, evaluate_capture, mask_capture};
 
 /// How gripper masks are made.
@@ -340,9 +341,6 @@ fn perturb_poses(capture: &mut Capture, mm: f64, deg: f64, seed: u64) {
     }
 }
 
-/// Frame index, object IoU, gripper IoU, stage times.
-type BenchRow = (usize, f64, f64, FrameTimings);
-
 /// Masks captures in memory (nothing is written), timing each stage and
 /// scoring against ground truth.
 pub fn bench(args: BenchArgs) -> Result<()> {
@@ -381,46 +379,21 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         // Throughput: frames in parallel, as `omniscan mask` runs them.
         let bar = crate::progress_bar(frames.len(), "bench mask");
         let start = Instant::now();
-        let results: Vec<BenchRow> = frames
+        let results: Vec<(FrameScore, FrameTimings)> = frames
             .par_iter()
             .map(|&i| -> Result<_> {
                 let m = mask_frame(&masker, &capture, i)?;
-                let frame = &capture.file.frames[i];
-                let gt = frame
-                    .gt
-                    .as_ref()
-                    .with_context(|| format!("{}: no ground truth", frame.file_path))?;
-                let truth = |rel: &Option<String>| -> Result<Plane<bool>> {
-                    let rel = rel.as_ref().context("ground truth mask path missing")?;
-                    Ok(Plane::from_mask(&read_mask(&capture.resolve(rel))?))
-                };
-                let object_iou = iou(&m.object, &truth(&gt.object_mask_path)?);
-                let gripper_iou = iou(&m.gripper, &truth(&gt.gripper_mask_path)?);
+                let score = score_frame(&capture, i, &m.object, &m.gripper)?;
                 bar.inc(1);
-                Ok((i, object_iou, gripper_iou, m.timings))
+                Ok((score, m.timings))
             })
             .collect::<Result<_>>()?;
         let throughput_s = start.elapsed().as_secs_f64() / frames.len().max(1) as f64;
         bar.finish_and_clear();
+        let scores: Vec<FrameScore> = results.iter().map(|r| r.0.clone()).collect();
+        let evaluation = summarise(&scores);
         let n = results.len().max(1) as f64;
-        let mean = |f: &dyn Fn(&BenchRow) -> f64| results.iter().map(f).sum::<f64>() / n;
-        let per_arm = |arm: Arm, f: &dyn Fn(&BenchRow) -> f64| {
-            let v: Vec<f64> = results
-                .iter()
-                .filter(|r| capture.file.frames[r.0].arm == arm)
-                .map(f)
-                .collect();
-            v.iter().sum::<f64>() / v.len().max(1) as f64
-        };
-        let worst = |f: &dyn Fn(&BenchRow) -> f64| {
-            let mut v: Vec<_> = results
-                .iter()
-                .map(|r| (f(r), capture.file.frames[r.0].file_path.clone()))
-                .collect();
-            v.sort_by(|a, b| a.0.total_cmp(&b.0));
-            v.truncate(3);
-            v
-        };
+        let mean = |f: fn(&FrameTimings) -> f64| results.iter().map(|r| f(&r.1)).sum::<f64>() / n;
         let object = capture
             .file
             .gt
@@ -439,19 +412,19 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             "pose_error_deg": args.pose_error_deg,
             "gripper_method": masker.settings.gripper_method,
             "frames": results.len(),
-            "object_miou": {"left": per_arm(Arm::Left, &|r| r.1), "right": per_arm(Arm::Right, &|r| r.1)},
-            "gripper_miou": {"left": per_arm(Arm::Left, &|r| r.2), "right": per_arm(Arm::Right, &|r| r.2)},
-            "object_min_iou": results.iter().map(|r| r.1).fold(1.0, f64::min),
-            "gripper_min_iou": results.iter().map(|r| r.2).fold(1.0, f64::min),
-            "worst_object": worst(&|r| r.1),
-            "worst_gripper": worst(&|r| r.2),
+            "object_miou": evaluation.object_miou,
+            "gripper_miou": evaluation.gripper_miou,
+            "object_min_iou": evaluation.object_min_iou,
+            "gripper_min_iou": evaluation.gripper_min_iou,
+            "worst_object": evaluation.worst_object,
+            "worst_gripper": evaluation.worst_gripper,
             "seconds_per_image_sequential": latency_s,
             "seconds_per_image_parallel": throughput_s,
             "stage_seconds": {
-                "load": mean(&|r| r.3.load_s),
-                "gripper": mean(&|r| r.3.gripper_s),
-                "flow": mean(&|r| r.3.flow_s),
-                "object": mean(&|r| r.3.object_s),
+                "load": mean(|t| t.load_s),
+                "gripper": mean(|t| t.gripper_s),
+                "flow": mean(|t| t.flow_s),
+                "object": mean(|t| t.object_s),
             },
         }));
         if !args.json {
@@ -471,14 +444,21 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 latency_s,
                 throughput_s
             );
+            let worst = |list: &[FrameScore], f: fn(&FrameScore) -> f64| {
+                list.iter()
+                    .take(3)
+                    .map(|s| format!("{} {:.3}", s.file, f(s)))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            };
             println!(
-                "    stages (s/image): load {:.3}, gripper {:.3}, flow {:.3}, object {:.3}; worst object frames {}; worst gripper frames {}",
-                mean(&|r| r.3.load_s),
-                mean(&|r| r.3.gripper_s),
-                mean(&|r| r.3.flow_s),
-                mean(&|r| r.3.object_s),
-                r["worst_object"],
-                r["worst_gripper"]
+                "    stages (s/image): load {:.3}, gripper {:.3}, flow {:.3}, object {:.3}; worst object frames: {}; worst gripper frames: {}",
+                mean(|t| t.load_s),
+                mean(|t| t.gripper_s),
+                mean(|t| t.flow_s),
+                mean(|t| t.object_s),
+                worst(&evaluation.worst_object, |s| s.object_iou),
+                worst(&evaluation.worst_gripper, |s| s.gripper_iou)
             );
         }
     }
