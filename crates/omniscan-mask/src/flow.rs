@@ -310,3 +310,132 @@ mod tests {
         assert_eq!(flow.moving(0.1).count(), 0);
     }
 }
+
+/// The value range a learned flow model expects its RGB inputs in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FlowInputRange {
+    /// 0..255 (RAFT's original code normalises inside the network).
+    Bytes,
+    /// 0..1.
+    Unit,
+    /// -1..1 (torchvision's RAFT transforms).
+    Signed,
+}
+
+/// A learned optical-flow network (RAFT and its kin) run by ONNX Runtime.
+/// Inputs: the model's first two inputs, each `[1, 3, H, W]` RGB in
+/// `range`; `H`x`W` is the model's fixed size, else the image's rounded up to
+/// multiples of 8 (RAFT's feature stride). Output: the one named `flow`,
+/// `flow_up` or `flow_predictions`, else the last, `[1, 2, H', W']` with
+/// (dx, dy) in pixels of that output; it is resampled to the image and
+/// its vectors rescaled to the image's pixels. Every pixel counts as valid.
+#[derive(Debug)]
+pub struct OnnxFlow {
+    pub model: crate::onnx::OnnxModel,
+    pub range: FlowInputRange,
+    inputs: [String; 2],
+    fixed_size: Option<(usize, usize)>,
+}
+
+impl OnnxFlow {
+    pub fn load(
+        path: &std::path::Path,
+        range: FlowInputRange,
+        runtime: Option<&std::path::Path>,
+    ) -> crate::Result<OnnxFlow> {
+        let model = crate::onnx::OnnxModel::load(path, runtime)?;
+        let bad = |m: String| crate::MaskError::file(path, m);
+        if model.inputs.len() < 2 {
+            return Err(bad(format!(
+                "a flow model takes two images; this one has {} input(s)",
+                model.inputs.len()
+            )));
+        }
+        let mut fixed = None;
+        for input in &model.inputs[..2] {
+            match input.dims.as_slice() {
+                [_, 3, h, w] if *h > 0 && *w > 0 => fixed = Some((*w as usize, *h as usize)),
+                [_, 3, _, _] => {}
+                other => {
+                    return Err(bad(format!(
+                        "a flow model's inputs must be [1, 3, H, W] RGB; input `{}` is {other:?}",
+                        input.name
+                    )));
+                }
+            }
+        }
+        let inputs = [model.inputs[0].name.clone(), model.inputs[1].name.clone()];
+        Ok(OnnxFlow {
+            model,
+            range,
+            inputs,
+            fixed_size: fixed,
+        })
+    }
+}
+
+impl FlowEstimator for OnnxFlow {
+    fn name(&self) -> &str {
+        "onnx-flow"
+    }
+
+    fn flow(&self, from: &RgbImage, to: &RgbImage) -> crate::Result<Flow> {
+        use crate::onnx::{Input, image_tensor, output_plane_size, pick_output, resampled};
+        if (from.width, from.height) != (to.width, to.height) {
+            return Err(crate::MaskError::Invalid(format!(
+                "optical flow between images of different sizes ({}x{} and {}x{})",
+                from.width, from.height, to.width, to.height
+            )));
+        }
+        let (iw, ih) = (from.width as usize, from.height as usize);
+        let (w, h) = self
+            .fixed_size
+            .unwrap_or((iw.div_ceil(8) * 8, ih.div_ceil(8) * 8));
+        let range = self.range;
+        let normalise = move |_: usize, v: f32| match range {
+            FlowInputRange::Bytes => v,
+            FlowInputRange::Unit => v / 255.0,
+            FlowInputRange::Signed => v / 127.5 - 1.0,
+        };
+        let dims = [1, 3, h as i64, w as i64];
+        let outputs = self.model.run(vec![
+            (
+                self.inputs[0].clone(),
+                Input::float(&dims, image_tensor(from, w, h, normalise)),
+            ),
+            (
+                self.inputs[1].clone(),
+                Input::float(&dims, image_tensor(to, w, h, normalise)),
+            ),
+        ])?;
+        let last = outputs.len().saturating_sub(1);
+        let out = pick_output(&outputs, &["flow", "flow_up", "flow_predictions"], last)
+            .ok_or_else(|| {
+                crate::MaskError::file(&self.model.path, "the flow model returned nothing")
+            })?;
+        let (oh, ow) = output_plane_size(out, 2).ok_or_else(|| {
+            crate::MaskError::file(
+                &self.model.path,
+                format!(
+                    "the flow model's output `{}` is {:?}, expected [1, 2, H, W]",
+                    out.name, out.dims
+                ),
+            )
+        })?;
+        let plane = ow * oh;
+        let (sx, sy) = (iw as f32 / ow as f32, ih as f32 / oh as f32);
+        let mut dx = resampled(&out.data[..plane], ow, oh, iw, ih);
+        let mut dy = resampled(&out.data[plane..], ow, oh, iw, ih);
+        dx.data.iter_mut().for_each(|v| *v *= sx);
+        dy.data.iter_mut().for_each(|v| *v *= sy);
+        let valid = Plane {
+            width: iw,
+            height: ih,
+            data: (0..iw * ih)
+                .map(|i| dx.data[i].is_finite() && dy.data[i].is_finite())
+                .collect(),
+        };
+        Ok(Flow { dx, dy, valid })
+    }
+}

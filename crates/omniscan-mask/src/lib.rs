@@ -13,9 +13,15 @@
 //!   against the empty-gripper pass at the same pose) and the non-gripper score
 //!   S_NG (share of the candidate outside the gripper mask); candidates over
 //!   both thresholds form the object mask.
-//! - [`flow`] and [`segment`]: the weight-free backends of the optical-flow
-//!   and candidate-segment roles (pyramidal Lucas-Kanade; Felzenszwalb-Huttenlocher
-//!   graph segmentation on colour and depth).
+//! - The model roles, each behind a trait with a weight-free default and a
+//!   learned backend run from an ONNX file: [`depth`] (sensor depth; a
+//!   monocular network such as Depth Anything V2, put in metres on the
+//!   gripper model's pixels), [`flow`] (pyramidal Lucas-Kanade; RAFT-style
+//!   networks), candidate segments ([`segment`]: Felzenszwalb-Huttenlocher
+//!   graph segmentation on colour and depth; [`sam`]: Segment Anything), and
+//!   the gripper ([`gripper`] kinematic; [`unet`] the paper's U-Net, trained
+//!   here, run in Rust or exported to ONNX). [`onnx`] loads ONNX Runtime at
+//!   run time and writes ONNX files.
 //! - [`pipeline`]: a whole capture, written next to its images with the paths
 //!   recorded in `capture.json`, resumable; and evaluation against the
 //!   simulator's ground truth.
@@ -23,11 +29,14 @@
 // Pixel loops index several planes by the same index; iterators would hide that.
 #![allow(clippy::needless_range_loop)]
 
+pub mod depth;
 pub mod flow;
 pub mod gripper;
 pub mod object;
+pub mod onnx;
 pub mod pipeline;
 pub mod plane;
+pub mod sam;
 pub mod segment;
 pub mod unet;
 

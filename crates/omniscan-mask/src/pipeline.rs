@@ -18,12 +18,14 @@ use omniscan_core::capture::{Arm, Capture, Frame};
 use omniscan_core::image_io::{self, RgbImage};
 use omniscan_sim::gripper::GripperModel;
 
-use crate::flow::{FlowEstimator, FlowSettings, LucasKanade};
-use crate::gripper::{GripperSettings, KinematicGripper};
+use crate::depth::{DepthEstimator, DepthOutput, MonocularDepth, SensorDepth};
+use crate::flow::{FlowEstimator, FlowInputRange, FlowSettings, LucasKanade, OnnxFlow};
+use crate::gripper::{GripperProjection, GripperSettings, KinematicGripper, refine};
 use crate::object::{ObjectInputs, ObjectSettings, object_mask};
 use crate::plane::{Plane, iou};
+use crate::sam::{SamProposer, SamSettings};
 use crate::segment::{CandidateProposer, GraphSegmenter};
-use crate::unet::{Example, UNet};
+use crate::unet::{Example, GripperNet, UNet};
 use crate::{MaskError, Result};
 
 /// Where the masks go, relative to the capture directory.
@@ -37,6 +39,10 @@ pub struct MaskSettings {
     /// `unet:FILE` / `both:FILE` with the network's file.
     #[serde(default)]
     pub gripper_method: String,
+    /// The depth, flow and candidate backends, for the resume check
+    /// (`sensor`, `lucas-kanade`, `graph` by default; learned ones with their files).
+    #[serde(default)]
+    pub backends: String,
     pub gripper: GripperSettings,
     pub object: ObjectSettings,
     pub flow: FlowSettings,
@@ -46,6 +52,9 @@ pub struct MaskSettings {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
 pub struct FrameTimings {
     pub load_s: f64,
+    /// Depth of the frame and its empty-gripper partner.
+    pub depth_s: f64,
+    /// The gripper masks, the projection of the gripper model included.
     pub gripper_s: f64,
     pub flow_s: f64,
     pub object_s: f64,
@@ -53,7 +62,7 @@ pub struct FrameTimings {
 
 impl FrameTimings {
     pub fn total(&self) -> f64 {
-        self.load_s + self.gripper_s + self.flow_s + self.object_s
+        self.load_s + self.depth_s + self.gripper_s + self.flow_s + self.object_s
     }
 }
 
@@ -70,10 +79,10 @@ pub enum GripperMethod {
     /// The projected gripper model, checked against the depth.
     Kinematic,
     /// The paper's learned segmentation alone.
-    Unet(UNet),
+    Unet(GripperNet),
     /// The kinematic mask, plus the pixels within a few pixels of it that the
     /// U-Net calls gripper (soft fingers bending outward).
-    Both(UNet),
+    Both(GripperNet),
 }
 
 /// How far around the kinematic mask the U-Net may add pixels (`Both`), pixels.
@@ -83,9 +92,12 @@ const BOTH_REACH_PX: usize = 4;
 pub struct Masker {
     pub method: GripperMethod,
     pub gripper: KinematicGripper,
+    pub depth: Box<dyn DepthEstimator>,
     pub flow: Box<dyn FlowEstimator>,
     pub proposer: Box<dyn CandidateProposer>,
     pub settings: MaskSettings,
+    /// The learned models' files and options, for the resume check.
+    learned_files: Vec<String>,
 }
 
 impl Masker {
@@ -124,6 +136,7 @@ impl Masker {
                 camera_to_world: capture.camera_to_world(),
                 settings: settings.gripper,
             },
+            depth: Box::new(SensorDepth),
             flow: Box::new(LucasKanade {
                 settings: settings.flow,
             }),
@@ -131,15 +144,102 @@ impl Masker {
                 settings: settings.object.segmentation,
             }),
             settings,
-        })
+            learned_files: Vec::new(),
+        }
+        .with_backends_recorded())
+    }
+
+    /// Records the backends in use in the settings (the resume check).
+    fn with_backends_recorded(mut self) -> Masker {
+        self.settings.backends = format!(
+            "depth={} flow={} candidates={}{}",
+            self.depth.name(),
+            self.flow.name(),
+            self.proposer.name(),
+            self.learned_files
+                .iter()
+                .map(|f| format!(" {f}"))
+                .collect::<String>()
+        );
+        self
+    }
+
+    /// Replaces the weight-free backends by the learned models named in
+    /// `models` (ONNX files, run by ONNX Runtime).
+    pub fn with_learned(mut self, models: &LearnedModels) -> Result<Masker> {
+        let runtime = models.onnx_runtime.as_deref();
+        if let Some(path) = &models.depth {
+            self.depth = Box::new(MonocularDepth::load(path, models.depth_output, runtime)?);
+            self.learned_files.push(format!(
+                "depth:{}:{:?}",
+                path.display(),
+                models.depth_output
+            ));
+        }
+        if let Some(path) = &models.flow {
+            self.flow = Box::new(OnnxFlow::load(path, models.flow_range, runtime)?);
+            self.learned_files
+                .push(format!("flow:{}:{:?}", path.display(), models.flow_range));
+        }
+        match (&models.sam_encoder, &models.sam_decoder) {
+            (Some(encoder), Some(decoder)) => {
+                self.proposer = Box::new(SamProposer::load(encoder, decoder, models.sam, runtime)?);
+                self.learned_files.push(format!(
+                    "sam:{}:{}:{:?}",
+                    encoder.display(),
+                    decoder.display(),
+                    models.sam
+                ));
+            }
+            (None, None) => {}
+            _ => {
+                return Err(MaskError::Invalid(
+                    "SAM needs both its encoder and its decoder ONNX files".into(),
+                ));
+            }
+        }
+        Ok(self.with_backends_recorded())
+    }
+}
+
+/// Learned backends to use instead of the weight-free defaults.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LearnedModels {
+    /// ONNX Runtime's library (else found as [`crate::onnx::find_runtime`] says).
+    pub onnx_runtime: Option<PathBuf>,
+    /// A monocular depth network, replacing the sensor depth.
+    pub depth: Option<PathBuf>,
+    pub depth_output: DepthOutput,
+    /// An optical-flow network, replacing Lucas-Kanade.
+    pub flow: Option<PathBuf>,
+    pub flow_range: FlowInputRange,
+    /// Segment Anything, replacing the graph segmentation.
+    pub sam_encoder: Option<PathBuf>,
+    pub sam_decoder: Option<PathBuf>,
+    pub sam: SamSettings,
+}
+
+impl Default for LearnedModels {
+    fn default() -> Self {
+        LearnedModels {
+            onnx_runtime: None,
+            depth: None,
+            depth_output: DepthOutput::Disparity,
+            flow: None,
+            flow_range: FlowInputRange::Bytes,
+            sam_encoder: None,
+            sam_decoder: None,
+            sam: SamSettings::default(),
+        }
     }
 }
 
 impl Masker {
     /// Uses a trained U-Net (`both`: to extend the kinematic mask; else alone),
-    /// read from `path`.
-    pub fn with_unet(mut self, path: &Path, both: bool) -> Result<Masker> {
-        let net = UNet::load(path)?;
+    /// read from `path` (our safetensors file, or an `.onnx` export run by
+    /// ONNX Runtime found as [`crate::onnx::find_runtime`] says).
+    pub fn with_unet(mut self, path: &Path, both: bool, runtime: Option<&Path>) -> Result<Masker> {
+        let net = GripperNet::load(path, runtime)?;
         self.settings.gripper_method =
             format!("{}:{}", if both { "both" } else { "unet" }, path.display());
         self.method = if both {
@@ -204,20 +304,6 @@ fn neighbour(capture: &Capture, index: usize) -> Option<usize> {
         .copied()
 }
 
-fn read_depth(capture: &Capture, frame: &Frame, what: &str) -> Result<Plane<f32>> {
-    let rel = frame.depth_path.as_ref().ok_or_else(|| {
-        MaskError::file(
-            capture.resolve(&frame.file_path),
-            format!("{what} has no depth_path: the masks need the sensor's depth"),
-        )
-    })?;
-    let path = capture.resolve(rel);
-    let depth = Plane::depth_metres(&image_io::read_depth(&path)?);
-    let size = (capture.intrinsics().width, capture.intrinsics().height);
-    check_size(&path, depth.width, depth.height, size)?;
-    Ok(depth)
-}
-
 fn check_size(path: &Path, w: usize, h: usize, expected: (u32, u32)) -> Result<()> {
     if (w as u32, h as u32) != expected {
         return Err(MaskError::file(
@@ -249,16 +335,21 @@ pub fn mask_frame(masker: &Masker, capture: &Capture, index: usize) -> Result<Fr
         image.height as usize,
         size,
     )?;
-    let depth = read_depth(capture, frame, "this frame")?;
     let empty = empty_partner(capture, index)?;
-    let empty_depth = read_depth(capture, empty, "its empty-gripper frame")?;
+    let read_image = |f: &Frame| -> Result<RgbImage> {
+        let path = capture.resolve(&f.file_path);
+        let img = image_io::read_rgb(&path)?;
+        check_size(&path, img.width as usize, img.height as usize, size)?;
+        Ok(img)
+    };
+    let unet_only = matches!(masker.method, GripperMethod::Unet(_));
+    let empty_image = if masker.depth.reads_image() || unet_only {
+        Some(read_image(empty)?)
+    } else {
+        None
+    };
     let next: Option<RgbImage> = match neighbour(capture, index) {
-        Some(j) => {
-            let path = capture.resolve(&capture.file.frames[j].file_path);
-            let img = image_io::read_rgb(&path)?;
-            check_size(&path, img.width as usize, img.height as usize, size)?;
-            Some(img)
-        }
+        Some(j) => Some(read_image(&capture.file.frames[j])?),
         None => None,
     };
     let opening = frame.gripper_opening_m.ok_or_else(|| {
@@ -269,39 +360,60 @@ pub fn mask_frame(masker: &Masker, capture: &Capture, index: usize) -> Result<Fr
     })?;
     let load_s = start.elapsed().as_secs_f64();
 
+    // The gripper model seen from the camera: the kinematic mask, and the
+    // metric anchor of a relative depth network.
     let t = Instant::now();
     let gripper_to_world = frame.gripper_to_world.0;
-    let kinematic = || {
-        masker
-            .gripper
-            .mask(&gripper_to_world, opening, &image, &depth)
-    };
-    let empty_kinematic = || {
-        masker
-            .gripper
-            .project(
-                &empty.gripper_to_world.0,
-                empty.gripper_opening_m.unwrap_or(0.0),
-            )
-            .mask
-    };
-    let (gripper, empty_gripper) = match &masker.method {
-        GripperMethod::Kinematic => (kinematic(), empty_kinematic()),
-        GripperMethod::Unet(net) => {
-            let empty_path = capture.resolve(&empty.file_path);
-            let empty_image = image_io::read_rgb(&empty_path)?;
-            check_size(
-                &empty_path,
-                empty_image.width as usize,
-                empty_image.height as usize,
-                size,
-            )?;
-            (net.mask(&image), net.mask(&empty_image))
+    let uses_model = !unet_only || masker.depth.needs_anchor();
+    let projection = uses_model.then(|| masker.gripper.project(&gripper_to_world, opening));
+    let empty_projection = uses_model.then(|| {
+        masker.gripper.project(
+            &empty.gripper_to_world.0,
+            empty.gripper_opening_m.unwrap_or(0.0),
+        )
+    });
+    let projection_s = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    fn anchor<'a>(masker: &Masker, p: &'a Option<GripperProjection>) -> Option<&'a Plane<f32>> {
+        p.as_ref()
+            .filter(|_| masker.depth.needs_anchor())
+            .map(|p| &p.depth_m)
+    }
+    let label = |f: &Frame| capture.resolve(&f.file_path).display().to_string();
+    let depth = masker
+        .depth
+        .depth_m(capture, frame, &image, anchor(masker, &projection))
+        .map_err(|e| MaskError::Invalid(format!("{}: depth: {e}", label(frame))))?;
+    // A depth role that does not read images is given this frame's.
+    let empty_depth = masker
+        .depth
+        .depth_m(
+            capture,
+            empty,
+            empty_image.as_ref().unwrap_or(&image),
+            anchor(masker, &empty_projection),
+        )
+        .map_err(|e| MaskError::Invalid(format!("{}: depth: {e}", label(empty))))?;
+    let depth_s = t.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    let kinematic = |p: &GripperProjection| refine(p, &image, &depth, &masker.gripper.settings);
+    let empty_kinematic = || empty_projection.as_ref().map(|p| p.mask.clone());
+    let (gripper, empty_gripper) = match (&masker.method, &projection) {
+        (GripperMethod::Unet(net), _) => {
+            let empty_image = empty_image.as_ref().unwrap_or(&image);
+            (net.mask(&image)?, Some(net.mask(empty_image)?))
         }
-        GripperMethod::Both(net) => {
-            let base = kinematic();
+        (GripperMethod::Kinematic, Some(p)) => (kinematic(p), empty_kinematic()),
+        (_, None) => {
+            return Err(MaskError::Invalid(
+                "internal error: the gripper model was not projected".into(),
+            ));
+        }
+        (GripperMethod::Both(net), Some(p)) => {
+            let base = kinematic(p);
             let reach = base.dilate(BOTH_REACH_PX);
-            let learned = net.mask(&image);
+            let learned = net.mask(&image)?;
             let data = (0..base.len())
                 .map(|i| base.data[i] || (learned.data[i] && reach.data[i]))
                 .collect();
@@ -315,7 +427,7 @@ pub fn mask_frame(masker: &Masker, capture: &Capture, index: usize) -> Result<Fr
             )
         }
     };
-    let gripper_s = t.elapsed().as_secs_f64();
+    let gripper_s = projection_s + t.elapsed().as_secs_f64();
 
     let t = Instant::now();
     let (w, h) = (image.width as usize, image.height as usize);
@@ -336,7 +448,7 @@ pub fn mask_frame(masker: &Masker, capture: &Capture, index: usize) -> Result<Fr
         depth_m: &depth,
         empty_depth_m: &empty_depth,
         gripper: &gripper,
-        empty_gripper: Some(&empty_gripper),
+        empty_gripper: empty_gripper.as_ref(),
         moving: &moving,
         tool_depth_m: tool.z as f32,
     };
@@ -347,6 +459,7 @@ pub fn mask_frame(masker: &Masker, capture: &Capture, index: usize) -> Result<Fr
         gripper,
         timings: FrameTimings {
             load_s,
+            depth_s,
             gripper_s,
             flow_s,
             object_s,
@@ -441,6 +554,7 @@ pub fn mask_capture(
         seconds: start.elapsed().as_secs_f64(),
         mean_timings: FrameTimings {
             load_s: mean(|t| t.load_s),
+            depth_s: mean(|t| t.depth_s),
             gripper_s: mean(|t| t.gripper_s),
             flow_s: mean(|t| t.flow_s),
             object_s: mean(|t| t.object_s),

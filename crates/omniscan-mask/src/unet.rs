@@ -375,28 +375,10 @@ impl UNet {
     /// Network input from an image: resized to the working size by area
     /// averaging, normalised.
     pub fn input(&self, image: &RgbImage) -> Tensor {
-        let (w, h) = (self.input_width, self.input_height);
-        let mut t = Tensor::zeros(3, h, w);
-        let (iw, ih) = (image.width as usize, image.height as usize);
-        for y in 0..h {
-            let (y0, y1) = source_span(y, h, ih);
-            for x in 0..w {
-                let (x0, x1) = source_span(x, w, iw);
-                let mut sum = [0f32; 3];
-                for sy in y0..y1 {
-                    for sx in x0..x1 {
-                        let p = 3 * (sy * iw + sx);
-                        for c in 0..3 {
-                            sum[c] += image.data[p + c] as f32;
-                        }
-                    }
-                }
-                let n = ((y1 - y0) * (x1 - x0)) as f32;
-                for c in 0..3 {
-                    t.data[(c * h + y) * w + x] = (sum[c] / n / 255.0 - 0.5) / 0.25;
-                }
-            }
-        }
+        let mut t = area_resized(image, self.input_width, self.input_height);
+        t.data
+            .iter_mut()
+            .for_each(|v| *v = (*v / 255.0 - 0.5) / 0.25);
         t
     }
 
@@ -456,32 +438,12 @@ impl UNet {
             height: logits.height,
             data: logits.data.iter().map(|&z| sigmoid(z)).collect(),
         };
-        let (w, h) = (image.width as usize, image.height as usize);
-        let (sx, sy) = (
-            small.width as f32 / w as f32,
-            small.height as f32 / h as f32,
-        );
-        let mut data = Vec::with_capacity(w * h);
-        for y in 0..h {
-            for x in 0..w {
-                data.push(small.sample((x as f32 + 0.5) * sx - 0.5, (y as f32 + 0.5) * sy - 0.5));
-            }
-        }
-        Plane {
-            width: w,
-            height: h,
-            data,
-        }
+        to_image_size(&small, image)
     }
 
     /// The gripper mask of `image` (probability ≥ 0.5).
     pub fn mask(&self, image: &RgbImage) -> Plane<bool> {
-        let p = self.probabilities(image);
-        Plane {
-            width: p.width,
-            height: p.height,
-            data: p.data.iter().map(|&v| v >= 0.5).collect(),
-        }
+        threshold(&self.probabilities(image))
     }
 
     /// Mean binary cross-entropy of the logits against `target` (0..1 per
@@ -650,11 +612,273 @@ impl UNet {
     }
 }
 
+impl UNet {
+    /// The network as an ONNX model (operator set 17), so that other tools
+    /// (Python onnxruntime, and [`OnnxGripperNet`] here) can run it. Input
+    /// `rgb`: `[1, 3, input_height, input_width]`, float, 0..255, the image
+    /// area-averaged to the working size (the normalisation is inside the
+    /// graph). Outputs `logits` and `probability`, `[1, 1, input_height,
+    /// input_width]`. Metadata as in the safetensors file.
+    pub fn to_onnx(&self) -> Vec<u8> {
+        use crate::onnx::graph::{Attribute, Dim, ElementType, Graph};
+        let (w, h) = (self.input_width as i64, self.input_height as i64);
+        let shape = |c: i64| vec![Dim::Fixed(1), Dim::Fixed(c), Dim::Fixed(h), Dim::Fixed(w)];
+        let mut g = Graph::new("omniscan_gripper_unet");
+        g.input("rgb", ElementType::Float, shape(3))
+            .output("logits", ElementType::Float, shape(1))
+            .output("probability", ElementType::Float, shape(1))
+            .metadata("format", FORMAT)
+            .metadata("input_width", &self.input_width.to_string())
+            .metadata("input_height", &self.input_height.to_string())
+            .metadata("channels", &self.channels.map(|c| c.to_string()).join(","))
+            // (rgb/255 - 0.5)/0.25 = rgb/63.75 - 2
+            .constant("norm_scale", &[], vec![1.0 / 63.75])
+            .constant("norm_shift", &[], vec![2.0])
+            .constant("upsample_scales", &[4], vec![1.0, 1.0, 2.0, 2.0])
+            .node("Mul", &["rgb", "norm_scale"], &["rgb_scaled"], vec![])
+            .node("Sub", &["rgb_scaled", "norm_shift"], &["input"], vec![]);
+        for (name, layer) in LAYER_NAMES.iter().zip(&self.layers) {
+            let k = layer.kernel as i64;
+            g.constant(
+                &format!("{name}.weight"),
+                &[layer.outputs as i64, layer.inputs as i64, k, k],
+                layer.weight.clone(),
+            )
+            .constant(
+                &format!("{name}.bias"),
+                &[layer.outputs as i64],
+                layer.bias.clone(),
+            );
+        }
+        let conv = |g: &mut Graph, layer: &str, from: &str, to: &str, relu: bool| {
+            let k = self.layers[LAYER_NAMES.iter().position(|n| *n == layer).unwrap_or(0)].kernel
+                as i64;
+            let pad = k / 2;
+            let conv_out = if relu {
+                format!("{to}_pre")
+            } else {
+                to.to_string()
+            };
+            g.node(
+                "Conv",
+                &[from, &format!("{layer}.weight"), &format!("{layer}.bias")],
+                &[&conv_out],
+                vec![
+                    ("kernel_shape", Attribute::Ints(vec![k, k])),
+                    ("pads", Attribute::Ints(vec![pad; 4])),
+                ],
+            );
+            if relu {
+                g.node("Relu", &[&conv_out], &[to], vec![]);
+            }
+        };
+        let pool = |g: &mut Graph, from: &str, to: &str| {
+            g.node(
+                "MaxPool",
+                &[from],
+                &[to],
+                vec![
+                    ("kernel_shape", Attribute::Ints(vec![2, 2])),
+                    ("strides", Attribute::Ints(vec![2, 2])),
+                ],
+            );
+        };
+        // Nearest-neighbour doubling with output pixel y taking input y/2.
+        let up_concat = |g: &mut Graph, from: &str, skip: &str, to: &str| {
+            let up = format!("{from}_up");
+            g.node(
+                "Resize",
+                &[from, "", "upsample_scales"],
+                &[&up],
+                vec![
+                    ("mode", Attribute::Text("nearest".into())),
+                    (
+                        "coordinate_transformation_mode",
+                        Attribute::Text("asymmetric".into()),
+                    ),
+                    ("nearest_mode", Attribute::Text("floor".into())),
+                ],
+            )
+            .node(
+                "Concat",
+                &[&up, skip],
+                &[to],
+                vec![("axis", Attribute::Int(1))],
+            );
+        };
+        conv(&mut g, "enc1a", "input", "a1", true);
+        conv(&mut g, "enc1b", "a1", "s1", true);
+        pool(&mut g, "s1", "p1");
+        conv(&mut g, "enc2a", "p1", "a2", true);
+        conv(&mut g, "enc2b", "a2", "s2", true);
+        pool(&mut g, "s2", "p2");
+        conv(&mut g, "mid_a", "p2", "a3", true);
+        conv(&mut g, "mid_b", "a3", "s3", true);
+        up_concat(&mut g, "s3", "s2", "c2");
+        conv(&mut g, "dec2", "c2", "d2", true);
+        up_concat(&mut g, "d2", "s1", "c1");
+        conv(&mut g, "dec1", "c1", "d1", true);
+        conv(&mut g, "head", "d1", "logits", false);
+        g.node("Sigmoid", &["logits"], &["probability"], vec![]);
+        g.to_model_bytes(17)
+    }
+}
+
+/// A gripper network exported by [`UNet::to_onnx`] (or any model with the
+/// same input and output), run by ONNX Runtime.
+#[derive(Debug)]
+pub struct OnnxGripperNet {
+    pub model: crate::onnx::OnnxModel,
+    pub input_width: usize,
+    pub input_height: usize,
+}
+
+impl OnnxGripperNet {
+    pub fn load(path: &Path, runtime: Option<&Path>) -> Result<OnnxGripperNet> {
+        let model = crate::onnx::OnnxModel::load(path, runtime)?;
+        let dims = model
+            .input("rgb")
+            .map(|i| i.dims.clone())
+            .unwrap_or_default();
+        let (input_height, input_width) = match dims.as_slice() {
+            [1, 3, h, w] if *h > 0 && *w > 0 => (*h as usize, *w as usize),
+            _ => {
+                return Err(MaskError::file(
+                    path,
+                    format!(
+                        "a gripper network needs an input `rgb` of fixed shape [1, 3, H, W]; this model's inputs are {:?}",
+                        model.inputs
+                    ),
+                ));
+            }
+        };
+        if !model.outputs.iter().any(|o| o.name == "probability") {
+            return Err(MaskError::file(
+                path,
+                "a gripper network needs an output `probability`",
+            ));
+        }
+        Ok(OnnxGripperNet {
+            model,
+            input_width,
+            input_height,
+        })
+    }
+
+    /// Gripper probability per pixel of `image`, at the image's size.
+    pub fn probabilities(&self, image: &RgbImage) -> Result<Plane<f32>> {
+        let (w, h) = (self.input_width, self.input_height);
+        let input = area_resized(image, w, h);
+        let outputs = self.model.run(vec![(
+            "rgb".into(),
+            crate::onnx::Input::float(&[1, 3, h as i64, w as i64], input.data),
+        )])?;
+        let probability = crate::onnx::pick_output(&outputs, &["probability"], 0)
+            .filter(|o| o.data.len() == w * h)
+            .ok_or_else(|| {
+                MaskError::file(
+                    &self.model.path,
+                    format!("output `probability` is not [1, 1, {h}, {w}]"),
+                )
+            })?;
+        let small = Plane {
+            width: w,
+            height: h,
+            data: probability.data.clone(),
+        };
+        Ok(to_image_size(&small, image))
+    }
+}
+
+/// A gripper segmentation network: ours run in Rust, or an ONNX file.
+#[derive(Debug)]
+pub enum GripperNet {
+    Native(UNet),
+    Onnx(OnnxGripperNet),
+}
+
+impl GripperNet {
+    /// Reads `path`: an ONNX model when it ends in `.onnx`, else our
+    /// safetensors file.
+    pub fn load(path: &Path, runtime: Option<&Path>) -> Result<GripperNet> {
+        if path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("onnx"))
+        {
+            Ok(GripperNet::Onnx(OnnxGripperNet::load(path, runtime)?))
+        } else {
+            Ok(GripperNet::Native(UNet::load(path)?))
+        }
+    }
+
+    /// The gripper mask of `image` (probability ≥ 0.5).
+    pub fn mask(&self, image: &RgbImage) -> Result<Plane<bool>> {
+        match self {
+            GripperNet::Native(net) => Ok(net.mask(image)),
+            GripperNet::Onnx(net) => Ok(threshold(&net.probabilities(image)?)),
+        }
+    }
+}
+
 /// The source pixels `lo..hi` that output pixel `i` of `out` averages when
 /// `src` pixels are resized to `out` (at least one).
 fn source_span(i: usize, out: usize, src: usize) -> (usize, usize) {
     let lo = i * src / out;
     (lo, ((i + 1) * src / out).max(lo + 1))
+}
+
+/// The image at `w`x`h` by area averaging, channels first, values 0..255.
+fn area_resized(image: &RgbImage, w: usize, h: usize) -> Tensor {
+    let mut t = Tensor::zeros(3, h, w);
+    let (iw, ih) = (image.width as usize, image.height as usize);
+    for y in 0..h {
+        let (y0, y1) = source_span(y, h, ih);
+        for x in 0..w {
+            let (x0, x1) = source_span(x, w, iw);
+            let mut sum = [0f32; 3];
+            for sy in y0..y1 {
+                for sx in x0..x1 {
+                    let p = 3 * (sy * iw + sx);
+                    for c in 0..3 {
+                        sum[c] += image.data[p + c] as f32;
+                    }
+                }
+            }
+            let n = ((y1 - y0) * (x1 - x0)) as f32;
+            for c in 0..3 {
+                t.data[(c * h + y) * w + x] = sum[c] / n;
+            }
+        }
+    }
+    t
+}
+
+/// Working-size probabilities resampled bilinearly to `image`'s size.
+fn to_image_size(small: &Plane<f32>, image: &RgbImage) -> Plane<f32> {
+    let (w, h) = (image.width as usize, image.height as usize);
+    let (sx, sy) = (
+        small.width as f32 / w as f32,
+        small.height as f32 / h as f32,
+    );
+    let mut data = Vec::with_capacity(w * h);
+    for y in 0..h {
+        for x in 0..w {
+            data.push(small.sample((x as f32 + 0.5) * sx - 0.5, (y as f32 + 0.5) * sy - 0.5));
+        }
+    }
+    Plane {
+        width: w,
+        height: h,
+        data,
+    }
+}
+
+fn threshold(p: &Plane<f32>) -> Plane<bool> {
+    Plane {
+        width: p.width,
+        height: p.height,
+        data: p.data.iter().map(|&v| v >= 0.5).collect(),
+    }
 }
 
 #[inline]

@@ -219,11 +219,11 @@ fn the_learned_gripper_path_trains_saves_and_masks() {
     let kinematic = Masker::new(&capture, None, MaskSettings::default()).unwrap();
     let learned = Masker::new(&capture, None, MaskSettings::default())
         .unwrap()
-        .with_unet(&file, false)
+        .with_unet(&file, false, None)
         .unwrap();
     let both = Masker::new(&capture, None, MaskSettings::default())
         .unwrap()
-        .with_unet(&file, true)
+        .with_unet(&file, true, None)
         .unwrap();
     assert!(learned.settings.gripper_method.starts_with("unet:"));
     let (mut learned_iou, mut kinematic_iou) = (0.0, 0.0);

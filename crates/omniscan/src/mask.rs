@@ -12,7 +12,7 @@ use serde_json::json;
 
 use omniscan_core::capture::Capture;
 use omniscan_mask::pipeline::{
-    FrameScore, FrameTimings, Masker, mask_frame, score_frame, summarise,
+    FrameScore, FrameTimings, LearnedModels, Masker, mask_frame, score_frame, summarise,
 };
 use omniscan_mask::plane::iou;
 use omniscan_mask::{MaskSettings, evaluate_capture, mask_capture};
@@ -33,7 +33,7 @@ pub struct MaskSettingsArgs {
     /// Gripper mask method.
     #[arg(long, value_enum, default_value = "kinematic")]
     pub gripper: GripperMethod,
-    /// The trained gripper U-Net (safetensors) for --gripper unet|both.
+    /// The trained gripper U-Net for --gripper unet|both: our safetensors file, or an .onnx export (run by ONNX Runtime).
     #[arg(long)]
     pub unet: Option<PathBuf>,
     /// Directory with the robot's gripper meshes (default: the one recorded by the simulator, else the built-in model).
@@ -54,6 +54,76 @@ pub struct MaskSettingsArgs {
     /// Grow gripper masks by up to this many pixels where depth and colour continue the gripper (bent soft fingers).
     #[arg(long, default_value_t = 0)]
     pub grow_px: usize,
+    #[command(flatten)]
+    pub learned: LearnedArgs,
+}
+
+/// Learned backends (ONNX files run by ONNX Runtime) in place of the weight-free defaults.
+#[derive(clap::Args)]
+pub struct LearnedArgs {
+    /// ONNX Runtime's shared library (libonnxruntime.so, in the `onnxruntime` pip wheel under onnxruntime/capi/); default: $ORT_DYLIB_PATH, else python3's onnxruntime package.
+    #[arg(long)]
+    pub onnx_runtime: Option<PathBuf>,
+    /// A monocular depth network (ONNX; e.g. Depth Anything V2) instead of the sensor depth; relative output is put in metres on the gripper model's pixels.
+    #[arg(long)]
+    pub depth_model: Option<PathBuf>,
+    /// What --depth-model outputs.
+    #[arg(long, value_enum, default_value = "disparity")]
+    pub depth_model_output: DepthOutputArg,
+    /// An optical-flow network (ONNX; e.g. RAFT; two [1,3,H,W] image inputs, a [1,2,H,W] output) instead of Lucas-Kanade.
+    #[arg(long)]
+    pub flow_model: Option<PathBuf>,
+    /// The value range --flow-model expects its images in.
+    #[arg(long, value_enum, default_value = "bytes")]
+    pub flow_model_input: FlowRangeArg,
+    /// Segment Anything's image encoder (ONNX) for the object candidates, instead of graph segmentation.
+    #[arg(long, requires = "sam_decoder")]
+    pub sam_encoder: Option<PathBuf>,
+    /// Segment Anything's prompt decoder (ONNX; segment-anything's export interface).
+    #[arg(long, requires = "sam_encoder")]
+    pub sam_decoder: Option<PathBuf>,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum DepthOutputArg {
+    /// Relative inverse depth (larger is nearer), as Depth Anything V2's relative models give.
+    Disparity,
+    /// Metres.
+    Metres,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum FlowRangeArg {
+    /// 0..255
+    Bytes,
+    /// 0..1
+    Unit,
+    /// -1..1
+    Signed,
+}
+
+impl LearnedArgs {
+    fn models(&self) -> LearnedModels {
+        use omniscan_mask::depth::DepthOutput;
+        use omniscan_mask::flow::FlowInputRange;
+        LearnedModels {
+            onnx_runtime: self.onnx_runtime.clone(),
+            depth: self.depth_model.clone(),
+            depth_output: match self.depth_model_output {
+                DepthOutputArg::Disparity => DepthOutput::Disparity,
+                DepthOutputArg::Metres => DepthOutput::Metres,
+            },
+            flow: self.flow_model.clone(),
+            flow_range: match self.flow_model_input {
+                FlowRangeArg::Bytes => FlowInputRange::Bytes,
+                FlowRangeArg::Unit => FlowInputRange::Unit,
+                FlowRangeArg::Signed => FlowInputRange::Signed,
+            },
+            sam_encoder: self.sam_encoder.clone(),
+            sam_decoder: self.sam_decoder.clone(),
+            ..LearnedModels::default()
+        }
+    }
 }
 
 impl MaskSettingsArgs {
@@ -110,6 +180,17 @@ pub struct MaskArgs {
 pub enum MaskCommand {
     /// Train the gripper U-Net on simulated captures' ground-truth gripper masks.
     TrainGripper(TrainGripperArgs),
+    /// Convert a trained gripper U-Net (safetensors) to ONNX.
+    ExportGripper(ExportGripperArgs),
+}
+
+#[derive(clap::Args)]
+pub struct ExportGripperArgs {
+    /// The network from `omniscan mask train-gripper`.
+    pub network: PathBuf,
+    /// Where to write the ONNX model.
+    #[arg(long)]
+    pub out: PathBuf,
 }
 
 #[derive(clap::Args)]
@@ -120,6 +201,9 @@ pub struct TrainGripperArgs {
     /// Where to write the network (safetensors).
     #[arg(long)]
     pub out: PathBuf,
+    /// Also write the network as ONNX here (input `rgb` [1,3,H,W] 0..255, output `probability`), for other tools or --unet.
+    #[arg(long)]
+    pub onnx: Option<PathBuf>,
     #[arg(long, default_value_t = 800)]
     pub steps: usize,
     /// Images per step.
@@ -187,6 +271,10 @@ fn train_gripper(args: TrainGripperArgs) -> Result<()> {
     bar.finish_and_clear();
     let seconds = start.elapsed().as_secs_f64();
     net.save(&args.out)?;
+    if let Some(onnx) = &args.onnx {
+        omniscan_core::io::write_atomic(onnx, &net.to_onnx())
+            .with_context(|| format!("writing {}", onnx.display()))?;
+    }
     let ious: Vec<f64> = held_out
         .par_iter()
         .map(|(image, truth)| iou(&net.mask(image), truth))
@@ -212,12 +300,17 @@ fn train_gripper(args: TrainGripperArgs) -> Result<()> {
     Ok(())
 }
 
-fn with_method(
-    masker: Masker,
-    method: GripperMethod,
-    unet: Option<&std::path::Path>,
+/// The masker for `capture` with the gripper method and learned backends the
+/// options name.
+fn masker_for(
+    capture: &Capture,
+    args: &MaskSettingsArgs,
+    settings: MaskSettings,
 ) -> Result<Masker> {
-    Ok(match (method, unet) {
+    let masker = Masker::new(capture, args.gripper_dir.as_deref(), settings)?
+        .with_learned(&args.learned.models())?;
+    let runtime = args.learned.onnx_runtime.as_deref();
+    Ok(match (args.gripper, args.unet.as_deref()) {
         (GripperMethod::Kinematic, None) => masker,
         (GripperMethod::Kinematic, Some(_)) => {
             bail!("--unet is used only with --gripper unet or --gripper both")
@@ -225,25 +318,25 @@ fn with_method(
         (_, None) => {
             bail!("--gripper unet|both needs --unet FILE (from `omniscan mask train-gripper`)")
         }
-        (method, Some(file)) => masker.with_unet(file, method == GripperMethod::Both)?,
+        (method, Some(file)) => masker.with_unet(file, method == GripperMethod::Both, runtime)?,
     })
 }
 
 pub fn run(args: MaskArgs) -> Result<()> {
-    if let Some(MaskCommand::TrainGripper(train_args)) = args.command {
-        return train_gripper(train_args);
+    match args.command {
+        Some(MaskCommand::TrainGripper(train_args)) => return train_gripper(train_args),
+        Some(MaskCommand::ExportGripper(export)) => {
+            let net = omniscan_mask::unet::UNet::load(&export.network)?;
+            omniscan_core::io::write_atomic(&export.out, &net.to_onnx())
+                .with_context(|| format!("writing {}", export.out.display()))?;
+            println!("wrote {}", export.out.display());
+            return Ok(());
+        }
+        None => {}
     }
     let capture_path = args.capture.context("a capture directory is required")?;
     let mut capture = Capture::load(&capture_path)?;
-    let masker = with_method(
-        Masker::new(
-            &capture,
-            args.settings.gripper_dir.as_deref(),
-            args.settings.settings()?,
-        )?,
-        args.settings.gripper,
-        args.settings.unet.as_deref(),
-    )?;
+    let masker = masker_for(&capture, &args.settings, args.settings.settings()?)?;
     let bar = crate::progress_bar(capture.file.frames.len(), "masking");
     let summary = mask_capture(&mut capture, &masker, &|done, _| {
         bar.set_position(done as u64)
@@ -359,15 +452,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 args.seed,
             );
         }
-        let masker = with_method(
-            Masker::new(
-                &capture,
-                args.settings.gripper_dir.as_deref(),
-                settings.clone(),
-            )?,
-            args.settings.gripper,
-            args.settings.unet.as_deref(),
-        )?;
+        let masker = masker_for(&capture, &args.settings, settings.clone())?;
         let frames: Vec<usize> = (0..capture.file.frames.len()).step_by(args.every).collect();
         // Latency: one frame at a time (each stage may still use both cores).
         let latency_frames: Vec<usize> = frames.iter().copied().take(10).collect();
@@ -422,6 +507,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             "seconds_per_image_parallel": throughput_s,
             "stage_seconds": {
                 "load": mean(|t| t.load_s),
+                "depth": mean(|t| t.depth_s),
                 "gripper": mean(|t| t.gripper_s),
                 "flow": mean(|t| t.flow_s),
                 "object": mean(|t| t.object_s),
@@ -452,8 +538,9 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                     .join(", ")
             };
             println!(
-                "    stages (s/image): load {:.3}, gripper {:.3}, flow {:.3}, object {:.3}; worst object frames: {}; worst gripper frames: {}",
+                "    stages (s/image): load {:.3}, depth {:.3}, gripper {:.3}, flow {:.3}, object {:.3}; worst object frames: {}; worst gripper frames: {}",
                 mean(|t| t.load_s),
+                mean(|t| t.depth_s),
                 mean(|t| t.gripper_s),
                 mean(|t| t.flow_s),
                 mean(|t| t.object_s),

@@ -530,4 +530,17 @@ fn mask_writes_masks_records_them_and_reports_iou_per_arm() {
     ]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("--non-gripper-threshold"));
+    // A learned backend whose file is missing: an error naming it, before any masking.
+    let out = omniscan(&[
+        "mask",
+        capture.to_str().unwrap(),
+        "--depth-model",
+        "/nonexistent/depth_anything_v2.onnx",
+    ]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/depth_anything_v2.onnx"));
+    // SAM needs both of its files.
+    let out = omniscan(&["mask", capture.to_str().unwrap(), "--sam-encoder", "e.onnx"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--sam-decoder"));
 }
