@@ -13,7 +13,9 @@
 // variable; iterator chains would hide the maths.
 #![allow(clippy::needless_range_loop)]
 
+pub mod backend;
 pub mod backward;
+pub mod gpu;
 pub mod metrics;
 pub mod model;
 pub mod orbit;

@@ -5,6 +5,7 @@ mod inspect;
 mod mask;
 mod registration;
 mod render;
+mod splat_bench;
 mod train;
 
 use std::path::{Path, PathBuf};
@@ -100,6 +101,8 @@ enum BenchCommand {
     Mask(mask::BenchArgs),
     /// Inspection accuracy and time on triplets of generated good and defective copies.
     Inspect(inspect::BenchArgs),
+    /// Rasterizer time per view: CPU forward and forward+backward, GPU forward, on random scenes or models.
+    Splat(splat_bench::BenchArgs),
     /// Time a full simulated capture: both arms' trajectories plus the empty pass.
     Sim {
         #[arg(long, default_value = "builtin:flashlight")]
@@ -446,6 +449,9 @@ fn run(cli: Cli) -> Result<()> {
             which: BenchCommand::Inspect(args),
         } => inspect::bench(args)?,
         Command::Render(args) => render::run(args)?,
+        Command::Bench {
+            which: BenchCommand::Splat(args),
+        } => splat_bench::bench(args)?,
         Command::Train(args) => train::run(args)?,
         Command::Eval(args) => train::eval(args)?,
         Command::Bench {

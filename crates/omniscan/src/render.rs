@@ -1,5 +1,5 @@
 //! `omniscan render`: images of a splat model from orbiting cameras or from a
-//! capture's cameras, with the CPU reference rasterizer.
+//! capture's cameras, on the CPU reference rasterizer or the GPU (`--backend`).
 
 use std::path::PathBuf;
 
@@ -9,8 +9,9 @@ use rayon::prelude::*;
 use omniscan_core::capture::{Arm, Capture};
 use omniscan_core::image_io::{RgbImage, write_rgb};
 use omniscan_core::poses::{ViewSet, camera_views};
+use omniscan_splat::backend::{Backend, Renderer};
 use omniscan_splat::ply::read_splats;
-use omniscan_splat::raster::{Camera, Settings, render};
+use omniscan_splat::raster::{Camera, Settings};
 
 #[derive(clap::Args)]
 pub struct RenderArgs {
@@ -37,6 +38,9 @@ pub struct RenderArgs {
     /// Background colour, three numbers in [0, 1].
     #[arg(long, value_delimiter = ',', default_values_t = [0.0, 0.0, 0.0])]
     pub background: Vec<f32>,
+    /// Where to render: auto (a real GPU when there is one, else the CPU), cpu, or gpu (any Vulkan/Metal/DX12 device, software ones included).
+    #[arg(long, default_value = "auto")]
+    pub backend: Backend,
 }
 
 pub fn run(args: RenderArgs) -> Result<()> {
@@ -92,27 +96,33 @@ pub fn run(args: RenderArgs) -> Result<()> {
         background: [args.background[0], args.background[1], args.background[2]],
     };
     let gaussians = model.gaussians::<f32>();
+    let renderer = Renderer::new(args.backend)?;
+    tracing::info!("rendering on {}", renderer.describe());
     let bar = indicatif::ProgressBar::new(cameras.len() as u64);
-    cameras
-        .par_iter()
-        .try_for_each(|(name, camera)| -> Result<()> {
-            let (_, r) = render(&gaussians, camera, &settings);
-            let data = r
-                .rgb
-                .iter()
-                .flat_map(|c| c.map(|v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8))
-                .collect();
-            write_rgb(
-                &args.out.join(format!("{name}.png")),
-                &RgbImage {
-                    width: r.width,
-                    height: r.height,
-                    data,
-                },
-            )?;
-            bar.inc(1);
-            Ok(())
-        })?;
+    let one = |(name, camera): &(String, Camera<f32>)| -> Result<()> {
+        let r = renderer.render(&gaussians, camera, &settings)?;
+        let data = r
+            .rgb
+            .iter()
+            .flat_map(|c| c.map(|v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8))
+            .collect();
+        write_rgb(
+            &args.out.join(format!("{name}.png")),
+            &RgbImage {
+                width: r.width,
+                height: r.height,
+                data,
+            },
+        )?;
+        bar.inc(1);
+        Ok(())
+    };
+    // One device serves views one at a time; the CPU renders them in parallel.
+    if renderer.is_gpu() {
+        cameras.iter().try_for_each(one)?;
+    } else {
+        cameras.par_iter().try_for_each(one)?;
+    }
     bar.finish_and_clear();
     println!("wrote {} images to {}", cameras.len(), args.out.display());
     Ok(())

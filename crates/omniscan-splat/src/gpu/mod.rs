@@ -1,0 +1,601 @@
+//! The GPU backend of the rasterizer: the CPU reference's algorithm
+//! (`crate::raster`) as hand-written WGSL compute kernels run through wgpu
+//! (Vulkan, Metal or DX12; Mesa's lavapipe on machines without a GPU, which
+//! is how CI checks the kernels).
+//!
+//! Forward pass, all on the device (paper, "3DGS Training", after Kerbl et
+//! al. 2023 and gsplat's staging): `project.wgsl` projects every Gaussian and
+//! counts the 16x16 tiles it can reach; `scan.wgsl` turns the counts into
+//! offsets (the total is the one value read back, to size the intersection
+//! buffers, as Brush does); `sort.wgsl` emits one (tile, depth, index) entry
+//! per intersection and orders them with a stable 4-bit radix sort, first by
+//! depth (8 passes), then by tile (as many passes as the tile count needs), so
+//! each tile's list is front to back with ties by index, as on the CPU; it
+//! then finds each tile's range; `rasterize.wgsl` composites one tile per
+//! workgroup. Kernels are ours (WGSL has no 64-bit keys, hence the two
+//! sorts; no crate provides these kernels for wgpu).
+//!
+//! Results match the CPU reference in f32 up to the order of floating-point
+//! operations inside the projection: a Gaussian whose alpha sits within
+//! rounding of 1/255 at a pixel can be kept by one and skipped by the other.
+
+use std::sync::mpsc;
+
+use wgpu::util::DeviceExt;
+
+use crate::SplatError;
+use crate::raster::{Camera, Colors, Gaussians, Mode, Render, Settings, TILE, ViewGeometry};
+
+const PROJECT: &str = include_str!("project.wgsl");
+const SCAN: &str = include_str!("scan.wgsl");
+const SORT: &str = include_str!("sort.wgsl");
+const RASTERIZE: &str = include_str!("rasterize.wgsl");
+
+const GROUP: u32 = 256;
+const SCAN_BLOCK: u32 = 1024;
+const MAX_GROUPS_X: u32 = 65_535;
+
+/// Which devices [`GpuRenderer::new`] may pick.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DeviceChoice {
+    /// A real GPU only.
+    Hardware,
+    /// A real GPU, else a software rasterizer such as lavapipe.
+    AllowSoftware,
+}
+
+/// The wgpu device and the compiled kernels.
+pub struct GpuRenderer {
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    info: wgpu::AdapterInfo,
+    project: wgpu::ComputePipeline,
+    scan_blocks: wgpu::ComputePipeline,
+    add_block_offsets: wgpu::ComputePipeline,
+    emit: wgpu::ComputePipeline,
+    radix_histogram: wgpu::ComputePipeline,
+    radix_scatter: wgpu::ComputePipeline,
+    tile_ranges: wgpu::ComputePipeline,
+    rasterize: wgpu::ComputePipeline,
+}
+
+impl std::fmt::Debug for GpuRenderer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "GpuRenderer({})", self.adapter())
+    }
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct CameraUniform {
+    rot: [[f32; 4]; 3],
+    campos: [f32; 4],
+    intrinsics: [f32; 4],
+    limits: [f32; 4],
+    size: [f32; 4],
+    footprint: [f32; 4],
+    background: [f32; 4],
+    counts: [u32; 4],
+    counts2: [u32; 4],
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct SortParams {
+    len: u32,
+    shift: u32,
+    blocks: u32,
+    gaussians: u32,
+    tiles_x: u32,
+    tiles: u32,
+    _pad: [u32; 2],
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct RasterParams {
+    width: u32,
+    height: u32,
+    tiles_x: u32,
+    _pad: u32,
+    background: [f32; 4],
+}
+
+fn gpu_error(what: &str, e: impl std::fmt::Display) -> SplatError {
+    SplatError::Invalid(format!("GPU backend: {what}: {e}"))
+}
+
+/// Workgroup counts for `groups` workgroups, folded into two dimensions
+/// past the 65,535 limit of one (the kernels rebuild the flat index).
+fn grid(groups: u32) -> (u32, u32) {
+    if groups <= MAX_GROUPS_X {
+        (groups.max(1), 1)
+    } else {
+        (MAX_GROUPS_X, groups.div_ceil(MAX_GROUPS_X))
+    }
+}
+
+impl GpuRenderer {
+    /// Opens a GPU (high-performance preference) and compiles the kernels.
+    pub fn new(choice: DeviceChoice) -> Result<GpuRenderer, SplatError> {
+        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle());
+        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            force_fallback_adapter: false,
+            compatible_surface: None,
+            apply_limit_buckets: false,
+        }))
+        .map_err(|e| gpu_error("no GPU adapter found (is a Vulkan driver installed?)", e))?;
+        let info = adapter.get_info();
+        if choice == DeviceChoice::Hardware && info.device_type == wgpu::DeviceType::Cpu {
+            return Err(SplatError::Invalid(format!(
+                "GPU backend: the only adapter is the software rasterizer {} ({:?}); the CPU backend is faster",
+                info.name, info.backend
+            )));
+        }
+        let adapter_limits = adapter.limits();
+        let limits = wgpu::Limits {
+            max_storage_buffer_binding_size: adapter_limits.max_storage_buffer_binding_size,
+            max_buffer_size: adapter_limits.max_buffer_size,
+            max_storage_buffers_per_shader_stage: adapter_limits
+                .max_storage_buffers_per_shader_stage
+                .max(8),
+            ..wgpu::Limits::default()
+        };
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("omniscan"),
+            required_features: wgpu::Features::empty(),
+            required_limits: limits,
+            ..Default::default()
+        }))
+        .map_err(|e| gpu_error("the device refused to open", e))?;
+        device.on_uncaptured_error(std::sync::Arc::new(|e| {
+            tracing::error!("GPU backend: {e}");
+        }));
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = |label: &str, source: &str| {
+            device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(label),
+                source: wgpu::ShaderSource::Wgsl(source.into()),
+            })
+        };
+        let project_module = module("project", PROJECT);
+        let scan_module = module("scan", SCAN);
+        let sort_module = module("sort", SORT);
+        let raster_module = module("rasterize", RASTERIZE);
+        let pipeline = |module: &wgpu::ShaderModule, entry: &str| {
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry),
+                layout: None,
+                module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+        };
+        let renderer = GpuRenderer {
+            project: pipeline(&project_module, "main"),
+            scan_blocks: pipeline(&scan_module, "scan_blocks"),
+            add_block_offsets: pipeline(&scan_module, "add_block_offsets"),
+            emit: pipeline(&sort_module, "emit"),
+            radix_histogram: pipeline(&sort_module, "radix_histogram"),
+            radix_scatter: pipeline(&sort_module, "radix_scatter"),
+            tile_ranges: pipeline(&sort_module, "tile_ranges"),
+            rasterize: pipeline(&raster_module, "main"),
+            device,
+            queue,
+            info,
+        };
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(gpu_error("the kernels did not compile", e));
+        }
+        Ok(renderer)
+    }
+
+    /// The adapter's name and API, e.g. "NVIDIA H100 (Vulkan)".
+    pub fn adapter(&self) -> String {
+        format!("{} ({:?})", self.info.name, self.info.backend)
+    }
+
+    /// Whether the device is a software rasterizer (lavapipe).
+    pub fn is_software(&self) -> bool {
+        self.info.device_type == wgpu::DeviceType::Cpu
+    }
+
+    fn storage<T: bytemuck::Pod>(&self, label: &str, data: &[T]) -> wgpu::Buffer {
+        // Zero-length bindings are invalid; keep one element.
+        let bytes: &[u8] = bytemuck::cast_slice(data);
+        let contents = if bytes.is_empty() {
+            &[0u8; 4][..]
+        } else {
+            bytes
+        };
+        self.device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents,
+                usage: wgpu::BufferUsages::STORAGE
+                    | wgpu::BufferUsages::COPY_SRC
+                    | wgpu::BufferUsages::COPY_DST,
+            })
+    }
+
+    fn zeroed(&self, label: &str, words: u64) -> wgpu::Buffer {
+        self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: 4 * words.max(1),
+            usage: wgpu::BufferUsages::STORAGE
+                | wgpu::BufferUsages::COPY_SRC
+                | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        })
+    }
+
+    fn uniform<T: bytemuck::Pod>(&self, label: &str, value: &T) -> wgpu::Buffer {
+        self.device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: bytemuck::bytes_of(value),
+                usage: wgpu::BufferUsages::UNIFORM,
+            })
+    }
+
+    fn bind(
+        &self,
+        pipeline: &wgpu::ComputePipeline,
+        entries: &[(u32, &wgpu::Buffer)],
+    ) -> wgpu::BindGroup {
+        let entries: Vec<wgpu::BindGroupEntry> = entries
+            .iter()
+            .map(|(binding, buffer)| wgpu::BindGroupEntry {
+                binding: *binding,
+                resource: buffer.as_entire_binding(),
+            })
+            .collect();
+        self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: None,
+            layout: &pipeline.get_bind_group_layout(0),
+            entries: &entries,
+        })
+    }
+
+    fn dispatch(
+        encoder: &mut wgpu::CommandEncoder,
+        pipeline: &wgpu::ComputePipeline,
+        bind_group: &wgpu::BindGroup,
+        groups: (u32, u32),
+    ) {
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: None,
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(0, bind_group, &[]);
+        pass.dispatch_workgroups(groups.0, groups.1, 1);
+    }
+
+    /// Records an exclusive scan of the first `len` words of `data`, in place.
+    fn record_scan(&self, encoder: &mut wgpu::CommandEncoder, data: &wgpu::Buffer, len: u32) {
+        let blocks = len.div_ceil(SCAN_BLOCK).max(1);
+        let sums = self.zeroed("scan block sums", blocks as u64);
+        let params = self.uniform("scan params", &[len, 0u32, 0, 0]);
+        let group = self.bind(&self.scan_blocks, &[(0, &params), (1, data), (2, &sums)]);
+        Self::dispatch(encoder, &self.scan_blocks, &group, grid(blocks));
+        if blocks > 1 {
+            self.record_scan(encoder, &sums, blocks);
+            let group = self.bind(
+                &self.add_block_offsets,
+                &[(0, &params), (1, data), (2, &sums)],
+            );
+            Self::dispatch(encoder, &self.add_block_offsets, &group, grid(blocks));
+        }
+    }
+
+    fn submit_and_read(
+        &self,
+        encoder: wgpu::CommandEncoder,
+        source: &wgpu::Buffer,
+        bytes: u64,
+    ) -> Result<Vec<u8>, SplatError> {
+        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("readback"),
+            size: bytes.max(4),
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut encoder = encoder;
+        encoder.copy_buffer_to_buffer(source, 0, &staging, 0, bytes.max(4));
+        self.queue.submit([encoder.finish()]);
+        let (sender, receiver) = mpsc::channel();
+        staging.slice(..).map_async(wgpu::MapMode::Read, move |r| {
+            let _ = sender.send(r);
+        });
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| gpu_error("waiting for the device", e))?;
+        receiver
+            .recv()
+            .map_err(|e| gpu_error("reading results back", e))?
+            .map_err(|e| gpu_error("reading results back", e))?;
+        let data = staging
+            .slice(..)
+            .get_mapped_range()
+            .map_err(|e| gpu_error("reading results back", e))?
+            .to_vec();
+        staging.unmap();
+        Ok(data[..bytes as usize].to_vec())
+    }
+
+    /// Renders `gaussians` through `camera`: the same outputs as
+    /// [`crate::raster::render`] in f32.
+    pub fn render(
+        &self,
+        gaussians: &Gaussians<f32>,
+        camera: &Camera<f32>,
+        settings: &Settings<f32>,
+    ) -> Result<Render<f32>, SplatError> {
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let result = self.render_inner(gaussians, camera, settings);
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(gpu_error("rendering failed", e));
+        }
+        result
+    }
+
+    fn render_inner(
+        &self,
+        gaussians: &Gaussians<f32>,
+        camera: &Camera<f32>,
+        settings: &Settings<f32>,
+    ) -> Result<Render<f32>, SplatError> {
+        let n = gaussians.means.len() as u32;
+        let (width, height) = (camera.width, camera.height);
+        if width == 0 || height == 0 {
+            return Err(SplatError::Invalid("cannot render an empty image".into()));
+        }
+        let (tiles_x, tiles_y) = (width.div_ceil(TILE), height.div_ceil(TILE));
+        let tiles = tiles_x * tiles_y;
+        let view = ViewGeometry::new(camera);
+        let (coeffs, per_channel, plain): (Vec<f32>, u32, u32) = match &gaussians.colors {
+            Colors::Rgb(c) => (c.iter().flatten().copied().collect(), 1, 1),
+            Colors::Sh { degree, coeffs } => (
+                coeffs.iter().flatten().copied().collect(),
+                crate::sh::coefficients(*degree) as u32,
+                0,
+            ),
+        };
+        if per_channel > 16 {
+            return Err(SplatError::Invalid(
+                "the GPU backend evaluates SH up to degree 3".into(),
+            ));
+        }
+        let background = [
+            settings.background[0],
+            settings.background[1],
+            settings.background[2],
+            0.0,
+        ];
+        let camera_uniform = CameraUniform {
+            rot: [0, 1, 2].map(|r| {
+                [
+                    view.rot[r][0],
+                    view.rot[r][1],
+                    view.rot[r][2],
+                    view.trans[r],
+                ]
+            }),
+            campos: [view.campos[0], view.campos[1], view.campos[2], 0.0],
+            intrinsics: [camera.fx, camera.fy, camera.cx, camera.cy],
+            limits: [view.lim_x.0, view.lim_x.1, view.lim_y.0, view.lim_y.1],
+            size: [width as f32, height as f32, camera.near, camera.far],
+            footprint: [
+                settings.eps2d,
+                if settings.mode == Mode::Antialiased {
+                    1.0
+                } else {
+                    0.0
+                },
+                0.0,
+                0.0,
+            ],
+            background,
+            counts: [n, per_channel, plain, tiles_x],
+            counts2: [tiles_y, 0, 0, 0],
+        };
+        let flat = |v: &[[f32; 3]]| v.iter().flatten().copied().collect::<Vec<f32>>();
+        let camera_buffer = self.uniform("camera", &camera_uniform);
+        let means = self.storage("means", &flat(&gaussians.means));
+        let scales = self.storage("scales", &flat(&gaussians.scales));
+        let quats = self.storage(
+            "quats",
+            &gaussians
+                .quats
+                .iter()
+                .flatten()
+                .copied()
+                .collect::<Vec<f32>>(),
+        );
+        let opacities = self.storage("opacities", &gaussians.opacities);
+        let coeff_buffer = self.storage("colour coefficients", &coeffs);
+        let projected = self.zeroed("projected", 12 * n as u64);
+        let rects = self.zeroed("tile rectangles", 4 * n as u64);
+        let offsets = self.zeroed("tile offsets", n as u64 + 1);
+
+        // Projection and the offsets of each Gaussian's intersections.
+        let mut encoder = self.device.create_command_encoder(&Default::default());
+        let group = self.bind(
+            &self.project,
+            &[
+                (0, &camera_buffer),
+                (1, &means),
+                (2, &scales),
+                (3, &quats),
+                (4, &opacities),
+                (5, &coeff_buffer),
+                (6, &projected),
+                (7, &rects),
+                (8, &offsets),
+            ],
+        );
+        Self::dispatch(
+            &mut encoder,
+            &self.project,
+            &group,
+            grid((n + 1).div_ceil(GROUP)),
+        );
+        self.record_scan(&mut encoder, &offsets, n + 1);
+        let total_bytes = self.submit_and_read_at(encoder, &offsets, n as u64)?;
+        let total = u32::from_le_bytes([
+            total_bytes[0],
+            total_bytes[1],
+            total_bytes[2],
+            total_bytes[3],
+        ]);
+
+        // Intersections, sorted by depth and then (stably) by tile.
+        let len = total.max(1) as u64;
+        let mut keys = [
+            [
+                self.zeroed("tile keys", len),
+                self.zeroed("depth keys", len),
+                self.zeroed("indices", len),
+            ],
+            [
+                self.zeroed("tile keys", len),
+                self.zeroed("depth keys", len),
+                self.zeroed("indices", len),
+            ],
+        ];
+        let blocks = total.div_ceil(GROUP).max(1);
+        let histogram = self.zeroed("radix histogram", 16 * blocks as u64);
+        let ranges = self.zeroed("tile ranges", 2 * tiles as u64);
+        let output = self.zeroed("image", 6 * (width * height) as u64);
+        let mut encoder = self.device.create_command_encoder(&Default::default());
+        let params = |shift: u32| SortParams {
+            len: total,
+            shift,
+            blocks,
+            gaussians: n,
+            tiles_x,
+            tiles,
+            _pad: [0; 2],
+        };
+        let emit_params = self.uniform("emit params", &params(0));
+        let group = self.bind(
+            &self.emit,
+            &[
+                (0, &emit_params),
+                (1, &projected),
+                (2, &rects),
+                (3, &offsets),
+                (4, &keys[0][0]),
+                (5, &keys[0][1]),
+                (6, &keys[0][2]),
+            ],
+        );
+        Self::dispatch(&mut encoder, &self.emit, &group, grid(n.div_ceil(GROUP)));
+        let tile_bits = 32 - tiles.saturating_sub(1).leading_zeros();
+        let shifts: Vec<u32> = (0..8)
+            .map(|p| 4 * p)
+            .chain((0..tile_bits.div_ceil(4)).map(|p| 32 + 4 * p))
+            .collect();
+        let mut current = 0;
+        if total > 0 {
+            for &shift in &shifts {
+                let pass_params = self.uniform("radix params", &params(shift));
+                let [a, b] = &mut keys;
+                let (input, output_keys) = if current == 0 { (&*a, &*b) } else { (&*b, &*a) };
+                let group = self.bind(
+                    &self.radix_histogram,
+                    &[
+                        (0, &pass_params),
+                        (10, &input[0]),
+                        (11, &input[1]),
+                        (13, &histogram),
+                    ],
+                );
+                Self::dispatch(&mut encoder, &self.radix_histogram, &group, grid(blocks));
+                self.record_scan(&mut encoder, &histogram, 16 * blocks);
+                let group = self.bind(
+                    &self.radix_scatter,
+                    &[
+                        (0, &pass_params),
+                        (10, &input[0]),
+                        (11, &input[1]),
+                        (12, &input[2]),
+                        (13, &histogram),
+                        (14, &output_keys[0]),
+                        (15, &output_keys[1]),
+                        (16, &output_keys[2]),
+                    ],
+                );
+                Self::dispatch(&mut encoder, &self.radix_scatter, &group, grid(blocks));
+                current = 1 - current;
+            }
+        }
+        let sorted = &keys[current];
+        encoder.clear_buffer(&ranges, 0, None);
+        let ranges_params = self.uniform("range params", &params(0));
+        let group = self.bind(
+            &self.tile_ranges,
+            &[(0, &ranges_params), (20, &sorted[0]), (21, &ranges)],
+        );
+        Self::dispatch(
+            &mut encoder,
+            &self.tile_ranges,
+            &group,
+            grid(total.div_ceil(GROUP)),
+        );
+        let raster_params = self.uniform(
+            "raster params",
+            &RasterParams {
+                width,
+                height,
+                tiles_x,
+                _pad: 0,
+                background,
+            },
+        );
+        let group = self.bind(
+            &self.rasterize,
+            &[
+                (0, &raster_params),
+                (1, &projected),
+                (2, &sorted[2]),
+                (3, &ranges),
+                (4, &output),
+            ],
+        );
+        Self::dispatch(&mut encoder, &self.rasterize, &group, (tiles_x, tiles_y));
+        let bytes = self.submit_and_read(encoder, &output, 4 * 6 * (width * height) as u64)?;
+        let values: &[f32] = bytemuck::cast_slice(&bytes);
+        let pixels = (width * height) as usize;
+        let mut render = Render {
+            width,
+            height,
+            rgb: Vec::with_capacity(pixels),
+            alpha: Vec::with_capacity(pixels),
+            depth: Vec::with_capacity(pixels),
+            contributors: Vec::with_capacity(pixels),
+        };
+        for p in values.chunks_exact(6) {
+            render.rgb.push([p[0], p[1], p[2]]);
+            render.alpha.push(p[3]);
+            render.depth.push(p[4]);
+            render.contributors.push(p[5] as u32);
+        }
+        Ok(render)
+    }
+
+    /// Submits `encoder` and reads one word of `source` at word `index`.
+    fn submit_and_read_at(
+        &self,
+        mut encoder: wgpu::CommandEncoder,
+        source: &wgpu::Buffer,
+        index: u64,
+    ) -> Result<Vec<u8>, SplatError> {
+        let word = self.zeroed("one word", 1);
+        encoder.copy_buffer_to_buffer(source, 4 * index, &word, 0, 4);
+        self.submit_and_read(encoder, &word, 4)
+    }
+}

@@ -1,0 +1,145 @@
+// Tile intersections: emitted per Gaussian, sorted by (tile, depth, index)
+// with a stable least-significant-digit radix sort (4 bits per pass), then
+// each tile's range found.
+
+struct Params {
+    len: u32,       // intersections
+    shift: u32,     // digit position of this radix pass
+    blocks: u32,    // 256-element blocks
+    gaussians: u32,
+    tiles_x: u32,
+    tiles: u32,
+}
+
+@group(0) @binding(0) var<uniform> params: Params;
+
+// ---- emit: one thread per Gaussian -----------------------------------------
+@group(0) @binding(1) var<storage, read> projected: array<f32>;
+@group(0) @binding(2) var<storage, read> rects: array<u32>;
+@group(0) @binding(3) var<storage, read> offsets: array<u32>;
+@group(0) @binding(4) var<storage, read_write> emit_tile: array<u32>;
+@group(0) @binding(5) var<storage, read_write> emit_depth: array<u32>;
+@group(0) @binding(6) var<storage, read_write> emit_index: array<u32>;
+
+fn flat_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
+    return gid.x + gid.y * groups.x * 256u;
+}
+
+@compute @workgroup_size(256)
+fn emit(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let g = flat_index(gid, groups);
+    if (g >= params.gaussians) {
+        return;
+    }
+    let x0 = rects[4u * g];
+    let x1 = rects[4u * g + 1u];
+    let y0 = rects[4u * g + 2u];
+    let y1 = rects[4u * g + 3u];
+    // Depths are positive (in front of the near plane), so their bits sort as numbers.
+    let depth = bitcast<u32>(projected[12u * g + 9u]);
+    var k = offsets[g];
+    for (var y = y0; y < y1; y++) {
+        for (var x = x0; x < x1; x++) {
+            emit_tile[k] = y * params.tiles_x + x;
+            emit_depth[k] = depth;
+            emit_index[k] = g;
+            k++;
+        }
+    }
+}
+
+// ---- radix passes: 256 elements per workgroup -------------------------------
+// The key is the depth, or the tile when `shift` >= 32 (its digit at shift - 32).
+@group(0) @binding(10) var<storage, read> in_tile: array<u32>;
+@group(0) @binding(11) var<storage, read> in_depth: array<u32>;
+@group(0) @binding(12) var<storage, read> in_index: array<u32>;
+@group(0) @binding(13) var<storage, read_write> histogram: array<u32>;
+@group(0) @binding(14) var<storage, read_write> out_tile: array<u32>;
+@group(0) @binding(15) var<storage, read_write> out_depth: array<u32>;
+@group(0) @binding(16) var<storage, read_write> out_index: array<u32>;
+
+var<workgroup> counts: array<atomic<u32>, 16>;
+var<workgroup> digits: array<u32, 256>;
+
+fn digit_of(k: u32) -> u32 {
+    if (params.shift >= 32u) {
+        return (in_tile[k] >> (params.shift - 32u)) & 15u;
+    }
+    return (in_depth[k] >> params.shift) & 15u;
+}
+
+fn block_of(wid: vec3<u32>, groups: vec3<u32>) -> u32 {
+    return wid.x + wid.y * groups.x;
+}
+
+// histogram[digit * blocks + block] = elements of the block with that digit.
+@compute @workgroup_size(256)
+fn radix_histogram(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let block = block_of(wid, groups);
+    if (lid < 16u) {
+        atomicStore(&counts[lid], 0u);
+    }
+    workgroupBarrier();
+    let k = block * 256u + lid;
+    if (k < params.len) {
+        atomicAdd(&counts[digit_of(k)], 1u);
+    }
+    workgroupBarrier();
+    if (lid < 16u && block < params.blocks) {
+        histogram[lid * params.blocks + block] = atomicLoad(&counts[lid]);
+    }
+}
+
+// After the histogram's exclusive scan: each element goes to its digit's
+// offset for its block plus the number of earlier elements of the block
+// with the same digit (which keeps the sort stable).
+@compute @workgroup_size(256)
+fn radix_scatter(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let block = block_of(wid, groups);
+    let k = block * 256u + lid;
+    let inside = k < params.len;
+    var d = 16u;
+    if (inside) {
+        d = digit_of(k);
+    }
+    digits[lid] = d;
+    workgroupBarrier();
+    if (!inside) {
+        return;
+    }
+    var rank = 0u;
+    for (var j = 0u; j < lid; j++) {
+        rank += select(0u, 1u, digits[j] == d);
+    }
+    let dest = histogram[d * params.blocks + block] + rank;
+    out_tile[dest] = in_tile[k];
+    out_depth[dest] = in_depth[k];
+    out_index[dest] = in_index[k];
+}
+
+// ---- tile ranges: ranges[2t], ranges[2t+1] = first and one past last -------
+@group(0) @binding(20) var<storage, read> sorted_tile: array<u32>;
+@group(0) @binding(21) var<storage, read_write> ranges: array<u32>;
+
+@compute @workgroup_size(256)
+fn tile_ranges(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let k = flat_index(gid, groups);
+    if (k >= params.len) {
+        return;
+    }
+    let t = sorted_tile[k];
+    if (k == 0u || sorted_tile[k - 1u] != t) {
+        ranges[2u * t] = k;
+    }
+    if (k + 1u == params.len || sorted_tile[k + 1u] != t) {
+        ranges[2u * t + 1u] = k + 1u;
+    }
+}

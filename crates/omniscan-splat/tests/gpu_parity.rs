@@ -1,0 +1,208 @@
+//! The GPU backend against the CPU reference (f32), on scenes these tests
+//! generate. They need a Vulkan device: lavapipe will do (`apt-get install
+//! mesa-vulkan-drivers`), which `.ci/run` installs before running them.
+
+use omniscan_splat::gpu::{DeviceChoice, GpuRenderer};
+use omniscan_splat::raster::{Camera, Colors, Gaussians, Mode, Render, Settings, render};
+
+struct Lcg(u64);
+
+impl Lcg {
+    fn next(&mut self) -> f32 {
+        self.0 = self
+            .0
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        ((self.0 >> 40) as f32) / (1u64 << 24) as f32
+    }
+}
+
+/// `n` Gaussians in front of the camera (a few behind it and off-image),
+/// colours as SH of `degree`, or plain RGB when `degree` is None.
+fn scene(n: usize, degree: Option<usize>, seed: u64) -> Gaussians<f32> {
+    let mut r = Lcg(seed);
+    let means = (0..n)
+        .map(|i| {
+            let z = if i % 97 == 0 {
+                -1.0
+            } else {
+                1.5 + 2.0 * r.next()
+            };
+            [3.0 * (r.next() - 0.5), 2.4 * (r.next() - 0.5), z]
+        })
+        .collect();
+    let scales = (0..n)
+        .map(|_| {
+            [
+                0.01 + 0.08 * r.next(),
+                0.01 + 0.08 * r.next(),
+                0.005 + 0.05 * r.next(),
+            ]
+        })
+        .collect();
+    let quats = (0..n)
+        .map(|_| {
+            [
+                r.next() + 0.1,
+                r.next() - 0.5,
+                r.next() - 0.5,
+                r.next() - 0.5,
+            ]
+        })
+        .collect();
+    let opacities = (0..n).map(|_| 0.05 + 0.94 * r.next()).collect();
+    let colors = match degree {
+        None => Colors::Rgb((0..n).map(|_| [r.next(), r.next(), r.next()]).collect()),
+        Some(d) => {
+            let k = (d + 1) * (d + 1);
+            Colors::Sh {
+                degree: d,
+                coeffs: (0..n * k)
+                    .map(|i| {
+                        let s = if i % k == 0 { 1.5 } else { 0.3 };
+                        [
+                            s * (r.next() - 0.5),
+                            s * (r.next() - 0.5),
+                            s * (r.next() - 0.5),
+                        ]
+                    })
+                    .collect(),
+            }
+        }
+    };
+    Gaussians {
+        means,
+        scales,
+        quats,
+        opacities,
+        colors,
+    }
+}
+
+fn camera(width: u32, height: u32) -> Camera<f32> {
+    // Slightly rotated about y and shifted, so no axis is special.
+    let (s, c) = (0.1f32.sin(), 0.1f32.cos());
+    Camera {
+        viewmat: [
+            [c, 0.0, s, 0.05],
+            [0.0, 1.0, 0.0, -0.02],
+            [-s, 0.0, c, 0.3],
+            [0.0, 0.0, 0.0, 1.0],
+        ],
+        fx: 0.9 * width as f32,
+        fy: 0.9 * width as f32,
+        cx: 0.5 * width as f32 + 1.3,
+        cy: 0.5 * height as f32 - 0.7,
+        width,
+        height,
+        near: 0.01,
+        far: 100.0,
+    }
+}
+
+/// Largest per-pixel difference of each output, and the share of pixels
+/// whose colour differs by more than 1e-4.
+fn compare(cpu: &Render<f32>, gpu: &Render<f32>) -> (f32, f32, f32, f64) {
+    let mut rgb = 0f32;
+    let mut alpha = 0f32;
+    let mut depth = 0f32;
+    let mut off = 0usize;
+    for i in 0..cpu.alpha.len() {
+        let d = (0..3)
+            .map(|c| (cpu.rgb[i][c] - gpu.rgb[i][c]).abs())
+            .fold(0f32, f32::max);
+        rgb = rgb.max(d);
+        if d > 1e-4 {
+            off += 1;
+        }
+        alpha = alpha.max((cpu.alpha[i] - gpu.alpha[i]).abs());
+        depth = depth.max((cpu.depth[i] - gpu.depth[i]).abs() / cpu.depth[i].abs().max(1.0));
+    }
+    (rgb, alpha, depth, off as f64 / cpu.alpha.len() as f64)
+}
+
+fn renderer() -> GpuRenderer {
+    GpuRenderer::new(DeviceChoice::AllowSoftware).expect("a Vulkan device (lavapipe will do)")
+}
+
+#[test]
+#[ignore = "needs a Vulkan device (lavapipe: apt-get install mesa-vulkan-drivers)"]
+fn gpu_images_match_the_cpu_reference() {
+    let gpu = renderer();
+    for (degree, mode, background) in [
+        (Some(3), Mode::Classic, [0.0, 0.0, 0.0]),
+        (None, Mode::Antialiased, [0.2, 0.5, 0.9]),
+        (Some(1), Mode::Classic, [1.0, 1.0, 1.0]),
+    ] {
+        // 100x75 leaves partial tiles at the right and bottom.
+        let g = scene(3000, degree, 11);
+        let cam = camera(100, 75);
+        let settings = Settings {
+            eps2d: 0.3,
+            mode,
+            background,
+        };
+        let (_, cpu) = render(&g, &cam, &settings);
+        let got = gpu.render(&g, &cam, &settings).unwrap();
+        let (rgb, alpha, depth, off) = compare(&cpu, &got);
+        let label = format!("{} {degree:?} {mode:?}", gpu.adapter());
+        eprintln!(
+            "{label}: max |Δrgb| {rgb:.2e}, |Δalpha| {alpha:.2e}, relative |Δdepth| {depth:.2e}, pixels off by > 1e-4: {:.3}%",
+            100.0 * off
+        );
+        // Agreement to 1e-4, except that a pixel where a Gaussian sits within
+        // rounding of alpha = 1/255 may keep it on one side and skip it on the
+        // other (a GPU's exp need not round as the CPU's): allow a few such.
+        assert!(
+            off < 5e-4,
+            "{label}: {:.3}% of pixels differ by more than 1e-4",
+            100.0 * off
+        );
+        assert!(
+            rgb < 0.01 && alpha < 0.01 && depth < 0.01,
+            "{label}: rgb {rgb}, alpha {alpha}, depth {depth}"
+        );
+        let contributors_equal = cpu
+            .contributors
+            .iter()
+            .zip(&got.contributors)
+            .filter(|(a, b)| a == b)
+            .count();
+        assert!(
+            contributors_equal as f64 > 0.999 * cpu.contributors.len() as f64,
+            "{label}: contributor counts differ at {} pixels",
+            cpu.contributors.len() - contributors_equal
+        );
+        assert!(
+            cpu.alpha.iter().any(|&a| a > 0.5),
+            "the scene covers the image"
+        );
+    }
+}
+
+#[test]
+#[ignore = "needs a Vulkan device (lavapipe: apt-get install mesa-vulkan-drivers)"]
+fn gpu_handles_empty_scenes_and_many_tiles() {
+    let gpu = renderer();
+    let settings = Settings {
+        eps2d: 0.3,
+        mode: Mode::Classic,
+        background: [0.25, 0.5, 0.75],
+    };
+    // Nothing to draw: the background everywhere.
+    let empty = scene(0, None, 1);
+    let got = gpu.render(&empty, &camera(40, 30), &settings).unwrap();
+    assert!(got.rgb.iter().all(|p| *p == [0.25, 0.5, 0.75]));
+    assert!(got.alpha.iter().all(|&a| a == 0.0));
+    // Enough intersections for several scan levels and every tile digit.
+    let g = scene(20_000, Some(0), 5);
+    let cam = camera(640, 480);
+    let (_, cpu) = render(&g, &cam, &settings);
+    let got = gpu.render(&g, &cam, &settings).unwrap();
+    let (rgb, _, _, off) = compare(&cpu, &got);
+    assert!(
+        off < 5e-4 && rgb < 0.01,
+        "{:.3}% of pixels off, max {rgb}",
+        100.0 * off
+    );
+}
