@@ -50,7 +50,16 @@ fn scene(n: usize, degree: Option<usize>, seed: u64) -> Gaussians<f32> {
             ]
         })
         .collect();
-    let opacities = (0..n).map(|_| 0.05 + 0.94 * r.next()).collect();
+    // Every 50th fully opaque: alpha clamps at 0.999 where it is centred.
+    let opacities = (0..n)
+        .map(|i| {
+            if i % 50 == 0 {
+                1.0
+            } else {
+                0.05 + 0.94 * r.next()
+            }
+        })
+        .collect();
     let colors = match degree {
         None => Colors::Rgb((0..n).map(|_| [r.next(), r.next(), r.next()]).collect()),
         Some(d) => {
@@ -205,4 +214,85 @@ fn gpu_handles_empty_scenes_and_many_tiles() {
         "{:.3}% of pixels off, max {rgb}",
         100.0 * off
     );
+}
+
+/// Largest difference between two gradient arrays, relative to the largest
+/// magnitude of the reference.
+fn relative<const K: usize>(cpu: &[[f32; K]], gpu: &[[f32; K]]) -> f32 {
+    assert_eq!(cpu.len(), gpu.len());
+    let scale = cpu
+        .iter()
+        .flatten()
+        .fold(0f32, |m, v| m.max(v.abs()))
+        .max(1e-12);
+    cpu.iter()
+        .flatten()
+        .zip(gpu.iter().flatten())
+        .fold(0f32, |m, (a, b)| m.max((a - b).abs()))
+        / scale
+}
+
+#[test]
+#[ignore = "needs a Vulkan device (lavapipe: apt-get install mesa-vulkan-drivers)"]
+fn gpu_gradients_match_the_cpu_reference() {
+    use omniscan_splat::backward::backward;
+    use omniscan_splat::raster::{project, rasterize};
+    let gpu = renderer();
+    for (degree, mode) in [
+        (Some(3), Mode::Classic),
+        (None, Mode::Antialiased),
+        (Some(2), Mode::Antialiased),
+    ] {
+        let g = scene(2000, degree, 23);
+        let cam = camera(96, 72);
+        let settings = Settings {
+            eps2d: 0.3,
+            mode,
+            background: [0.3, 0.6, 0.1],
+        };
+        let p = project(&g, &cam, &settings);
+        let cpu_render = rasterize(&p, cam.width, cam.height, settings.background);
+        let mut r = Lcg(99);
+        let pixels = (cam.width * cam.height) as usize;
+        let d_rgb: Vec<[f32; 3]> = (0..pixels)
+            .map(|_| [r.next() - 0.5, r.next() - 0.5, r.next() - 0.5])
+            .collect();
+        let d_alpha: Vec<f32> = (0..pixels).map(|_| r.next() - 0.5).collect();
+        let cpu = backward(&g, &cam, &settings, &p, &d_rgb, &d_alpha);
+        let frame = gpu.forward(&g, &cam, &settings).unwrap();
+        let (rgb, ..) = compare(&cpu_render, &frame.render);
+        assert!(rgb < 1e-4);
+        let got = gpu.backward(&frame, &d_rgb, &d_alpha).unwrap();
+        let label = format!("{degree:?} {mode:?}");
+        let errors = [
+            ("means2d", relative(&cpu.means2d, &got.means2d)),
+            ("conics", relative(&cpu.conics, &got.conics)),
+            (
+                "opacities_view",
+                relative(
+                    &cpu.opacities_view.iter().map(|&v| [v]).collect::<Vec<_>>(),
+                    &got.opacities_view.iter().map(|&v| [v]).collect::<Vec<_>>(),
+                ),
+            ),
+            ("colors_view", relative(&cpu.colors_view, &got.colors_view)),
+            ("means", relative(&cpu.means, &got.means)),
+            ("quats", relative(&cpu.quats, &got.quats)),
+            ("scales", relative(&cpu.scales, &got.scales)),
+            (
+                "opacities",
+                relative(
+                    &cpu.opacities.iter().map(|&v| [v]).collect::<Vec<_>>(),
+                    &got.opacities.iter().map(|&v| [v]).collect::<Vec<_>>(),
+                ),
+            ),
+            ("colors", relative(&cpu.colors, &got.colors)),
+        ];
+        eprintln!("{label}: {errors:?}");
+        for (name, e) in errors {
+            assert!(
+                e < 1e-4,
+                "{label}: {name} differs by {e:e} of its largest magnitude"
+            );
+        }
+    }
 }

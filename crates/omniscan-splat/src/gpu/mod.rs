@@ -24,12 +24,15 @@ use std::sync::mpsc;
 use wgpu::util::DeviceExt;
 
 use crate::SplatError;
+use crate::backward::Gradients;
 use crate::raster::{Camera, Colors, Gaussians, Mode, Render, Settings, TILE, ViewGeometry};
 
 const PROJECT: &str = include_str!("project.wgsl");
 const SCAN: &str = include_str!("scan.wgsl");
 const SORT: &str = include_str!("sort.wgsl");
 const RASTERIZE: &str = include_str!("rasterize.wgsl");
+const RASTERIZE_BACKWARD: &str = include_str!("rasterize_backward.wgsl");
+const PROJECT_BACKWARD: &str = include_str!("project_backward.wgsl");
 
 const GROUP: u32 = 256;
 const SCAN_BLOCK: u32 = 1024;
@@ -57,6 +60,24 @@ pub struct GpuRenderer {
     radix_scatter: wgpu::ComputePipeline,
     tile_ranges: wgpu::ComputePipeline,
     rasterize: wgpu::ComputePipeline,
+    /// The backward kernels, when the device has subgroup operations.
+    backward: Option<(wgpu::ComputePipeline, wgpu::ComputePipeline)>,
+}
+
+/// What the forward pass leaves on the device for the backward pass.
+pub struct GpuFrame {
+    pub render: Render<f32>,
+    gaussians: u32,
+    sh_per_channel: u32,
+    camera: wgpu::Buffer,
+    inputs: [wgpu::Buffer; 5],
+    projected: wgpu::Buffer,
+    sorted_index: wgpu::Buffer,
+    ranges: wgpu::Buffer,
+    image: wgpu::Buffer,
+    last_contributor: wgpu::Buffer,
+    raster_params: wgpu::Buffer,
+    tiles: (u32, u32),
 }
 
 impl std::fmt::Debug for GpuRenderer {
@@ -142,9 +163,15 @@ impl GpuRenderer {
                 .max(8),
             ..wgpu::Limits::default()
         };
+        // The backward pass sums gradients across subgroups.
+        let subgroups = adapter.features().contains(wgpu::Features::SUBGROUP);
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("omniscan"),
-            required_features: wgpu::Features::empty(),
+            required_features: if subgroups {
+                wgpu::Features::SUBGROUP
+            } else {
+                wgpu::Features::empty()
+            },
             required_limits: limits,
             ..Default::default()
         }))
@@ -173,6 +200,17 @@ impl GpuRenderer {
                 cache: None,
             })
         };
+        let mut backward = None;
+        if subgroups {
+            // A device that cannot build the backward kernels can still render.
+            let inner = device.push_error_scope(wgpu::ErrorFilter::Validation);
+            let raster = pipeline(&module("rasterize backward", RASTERIZE_BACKWARD), "main");
+            let project = pipeline(&module("project backward", PROJECT_BACKWARD), "main");
+            match pollster::block_on(inner.pop()) {
+                None => backward = Some((raster, project)),
+                Some(e) => tracing::warn!("GPU backend: no backward pass on this device: {e}"),
+            }
+        }
         let renderer = GpuRenderer {
             project: pipeline(&project_module, "main"),
             scan_blocks: pipeline(&scan_module, "scan_blocks"),
@@ -182,6 +220,7 @@ impl GpuRenderer {
             radix_scatter: pipeline(&sort_module, "radix_scatter"),
             tile_ranges: pipeline(&sort_module, "tile_ranges"),
             rasterize: pipeline(&raster_module, "main"),
+            backward,
             device,
             queue,
             info,
@@ -334,20 +373,30 @@ impl GpuRenderer {
         camera: &Camera<f32>,
         settings: &Settings<f32>,
     ) -> Result<Render<f32>, SplatError> {
+        Ok(self.forward(gaussians, camera, settings)?.render)
+    }
+
+    /// Renders and keeps what the backward pass needs on the device.
+    pub fn forward(
+        &self,
+        gaussians: &Gaussians<f32>,
+        camera: &Camera<f32>,
+        settings: &Settings<f32>,
+    ) -> Result<GpuFrame, SplatError> {
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let result = self.render_inner(gaussians, camera, settings);
+        let result = self.forward_inner(gaussians, camera, settings);
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(gpu_error("rendering failed", e));
         }
         result
     }
 
-    fn render_inner(
+    fn forward_inner(
         &self,
         gaussians: &Gaussians<f32>,
         camera: &Camera<f32>,
         settings: &Settings<f32>,
-    ) -> Result<Render<f32>, SplatError> {
+    ) -> Result<GpuFrame, SplatError> {
         let n = gaussians.means.len() as u32;
         let (width, height) = (camera.width, camera.height);
         if width == 0 || height == 0 {
@@ -454,7 +503,7 @@ impl GpuRenderer {
 
         // Intersections, sorted by depth and then (stably) by tile.
         let len = total.max(1) as u64;
-        let mut keys = [
+        let mut keys = vec![
             [
                 self.zeroed("tile keys", len),
                 self.zeroed("depth keys", len),
@@ -470,6 +519,7 @@ impl GpuRenderer {
         let histogram = self.zeroed("radix histogram", 16 * blocks as u64);
         let ranges = self.zeroed("tile ranges", 2 * tiles as u64);
         let output = self.zeroed("image", 6 * (width * height) as u64);
+        let last_contributor = self.zeroed("last contributors", (width * height) as u64);
         let mut encoder = self.device.create_command_encoder(&Default::default());
         let params = |shift: u32| SortParams {
             len: total,
@@ -503,8 +553,7 @@ impl GpuRenderer {
         if total > 0 {
             for &shift in &shifts {
                 let pass_params = self.uniform("radix params", &params(shift));
-                let [a, b] = &mut keys;
-                let (input, output_keys) = if current == 0 { (&*a, &*b) } else { (&*b, &*a) };
+                let (input, output_keys) = (&keys[current], &keys[1 - current]);
                 let group = self.bind(
                     &self.radix_histogram,
                     &[
@@ -564,6 +613,7 @@ impl GpuRenderer {
                 (2, &sorted[2]),
                 (3, &ranges),
                 (4, &output),
+                (5, &last_contributor),
             ],
         );
         Self::dispatch(&mut encoder, &self.rasterize, &group, (tiles_x, tiles_y));
@@ -584,7 +634,154 @@ impl GpuRenderer {
             render.depth.push(p[4]);
             render.contributors.push(p[5] as u32);
         }
-        Ok(render)
+        let [_, _, sorted_index] = keys.swap_remove(current);
+        Ok(GpuFrame {
+            render,
+            gaussians: n,
+            sh_per_channel: per_channel,
+            camera: camera_buffer,
+            inputs: [means, scales, quats, opacities, coeff_buffer],
+            projected,
+            sorted_index,
+            ranges,
+            image: output,
+            last_contributor,
+            raster_params,
+            tiles: (tiles_x, tiles_y),
+        })
+    }
+
+    /// Gradients of the loss with respect to every Gaussian parameter (as
+    /// [`crate::backward::backward`] returns them), given dL/d(rgb) and
+    /// dL/d(alpha) per pixel of `frame`'s render.
+    pub fn backward(
+        &self,
+        frame: &GpuFrame,
+        d_rgb: &[[f32; 3]],
+        d_alpha: &[f32],
+    ) -> Result<Gradients<f32>, SplatError> {
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let result = self.backward_inner(frame, d_rgb, d_alpha);
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(gpu_error("the backward pass failed", e));
+        }
+        result
+    }
+
+    fn backward_inner(
+        &self,
+        frame: &GpuFrame,
+        d_rgb: &[[f32; 3]],
+        d_alpha: &[f32],
+    ) -> Result<Gradients<f32>, SplatError> {
+        let Some((raster_backward, project_backward)) = &self.backward else {
+            return Err(SplatError::Invalid(format!(
+                "GPU backend: {} has no subgroup operations, which the backward pass needs; train with --backend cpu",
+                self.adapter()
+            )));
+        };
+        let pixels = (frame.render.width * frame.render.height) as usize;
+        if d_rgb.len() != pixels || d_alpha.len() != pixels {
+            return Err(SplatError::Invalid(format!(
+                "backward pass: {} colour and {} alpha gradients for {pixels} pixels",
+                d_rgb.len(),
+                d_alpha.len()
+            )));
+        }
+        let n = frame.gaussians as u64;
+        let k = frame.sh_per_channel as u64;
+        let d_image: Vec<f32> = d_rgb
+            .iter()
+            .zip(d_alpha)
+            .flat_map(|(c, a)| [c[0], c[1], c[2], *a])
+            .collect();
+        let d_image = self.storage("image gradients", &d_image);
+        let grads2d = self.zeroed("2D gradients", 9 * n);
+        let outputs = [
+            self.zeroed("mean gradients", 3 * n),
+            self.zeroed("quaternion gradients", 4 * n),
+            self.zeroed("scale gradients", 3 * n),
+            self.zeroed("opacity gradients", n),
+            self.zeroed("colour gradients", 3 * k * n),
+        ];
+        let mut encoder = self.device.create_command_encoder(&Default::default());
+        encoder.clear_buffer(&grads2d, 0, None);
+        let group = self.bind(
+            raster_backward,
+            &[
+                (0, &frame.raster_params),
+                (1, &frame.projected),
+                (2, &frame.sorted_index),
+                (3, &frame.ranges),
+                (4, &frame.image),
+                (5, &frame.last_contributor),
+                (6, &d_image),
+                (7, &grads2d),
+            ],
+        );
+        Self::dispatch(&mut encoder, raster_backward, &group, frame.tiles);
+        let [means, scales, quats, opacities, coeffs] = &frame.inputs;
+        let group = self.bind(
+            project_backward,
+            &[
+                (0, &frame.camera),
+                (1, means),
+                (2, scales),
+                (3, quats),
+                (4, opacities),
+                (5, coeffs),
+                (6, &frame.projected),
+                (7, &grads2d),
+                (8, &outputs[0]),
+                (9, &outputs[1]),
+                (10, &outputs[2]),
+                (11, &outputs[3]),
+                (12, &outputs[4]),
+            ],
+        );
+        Self::dispatch(
+            &mut encoder,
+            project_backward,
+            &group,
+            grid((n as u32).div_ceil(GROUP)),
+        );
+        // One read-back of everything: the 2D gradients, then each output.
+        let sizes = [9 * n, 3 * n, 4 * n, 3 * n, n, 3 * k * n];
+        let total: u64 = sizes.iter().sum();
+        let gathered = self.zeroed("gradients", total);
+        let mut offset = 0;
+        for (buffer, &size) in std::iter::once(&grads2d).chain(outputs.iter()).zip(&sizes) {
+            if size > 0 {
+                encoder.copy_buffer_to_buffer(buffer, 0, &gathered, 4 * offset, 4 * size);
+            }
+            offset += size;
+        }
+        let bytes = self.submit_and_read(encoder, &gathered, 4 * total)?;
+        let all: &[f32] = bytemuck::cast_slice(&bytes);
+        let (g2, rest) = all.split_at((9 * n) as usize);
+        let (d_means, rest) = rest.split_at((3 * n) as usize);
+        let (d_quats, rest) = rest.split_at((4 * n) as usize);
+        let (d_scales, rest) = rest.split_at((3 * n) as usize);
+        let (d_opacities, d_coeffs) = rest.split_at(n as usize);
+        let triples = |v: &[f32]| {
+            v.chunks_exact(3)
+                .map(|c| [c[0], c[1], c[2]])
+                .collect::<Vec<_>>()
+        };
+        Ok(Gradients {
+            means2d: g2.chunks_exact(9).map(|c| [c[0], c[1]]).collect(),
+            conics: g2.chunks_exact(9).map(|c| [c[2], c[3], c[4]]).collect(),
+            opacities_view: g2.chunks_exact(9).map(|c| c[5]).collect(),
+            colors_view: g2.chunks_exact(9).map(|c| [c[6], c[7], c[8]]).collect(),
+            means: triples(d_means),
+            quats: d_quats
+                .chunks_exact(4)
+                .map(|c| [c[0], c[1], c[2], c[3]])
+                .collect(),
+            scales: triples(d_scales),
+            opacities: d_opacities.to_vec(),
+            colors: triples(d_coeffs),
+        })
     }
 
     /// Submits `encoder` and reads one word of `source` at word `index`.

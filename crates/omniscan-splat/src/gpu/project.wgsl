@@ -24,7 +24,8 @@ struct Camera {
 @group(0) @binding(3) var<storage, read> quats: array<f32>;
 @group(0) @binding(4) var<storage, read> opacities: array<f32>;
 @group(0) @binding(5) var<storage, read> coeffs: array<f32>;
-// 12 floats per Gaussian: mean x, y; conic a, b, c; opacity; r, g, b; depth; 2 unused.
+// 12 floats per Gaussian: mean x, y; conic a, b, c; opacity; r, g, b; depth;
+// visible (1 or 0; the CPU reference's non-zero radii); compensation.
 @group(0) @binding(6) var<storage, read_write> projected: array<f32>;
 // 4 per Gaussian: tile x0, x1, y0, y1 (half-open).
 @group(0) @binding(7) var<storage, read_write> rects: array<u32>;
@@ -79,6 +80,7 @@ fn sh_colour(g: u32, dir: vec3<f32>) -> vec3<f32> {
 }
 
 fn invisible(g: u32) {
+    projected[12u * g + 10u] = 0.0;
     rects[4u * g] = 0u;
     rects[4u * g + 1u] = 0u;
     rects[4u * g + 2u] = 0u;
@@ -176,10 +178,17 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     projected[o + 7u] = colour.y;
     projected[o + 8u] = colour.z;
     projected[o + 9u] = z;
+    projected[o + 10u] = 1.0;
+    projected[o + 11u] = compensation;
 
     // Reach: where opacity·e^(-σ) = 1/255, clamped to the 3.33σ radii.
     if (opacity < ALPHA_MIN) {
-        invisible(g);
+        // Visible but too faint to reach 1/255 anywhere: no tiles.
+        rects[4u * g] = 0u;
+        rects[4u * g + 1u] = 0u;
+        rects[4u * g + 2u] = 0u;
+        rects[4u * g + 3u] = 0u;
+        tile_counts[g] = 0u;
         return;
     }
     let level = 2.0 * log(opacity / ALPHA_MIN);

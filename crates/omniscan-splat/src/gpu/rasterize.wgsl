@@ -17,6 +17,9 @@ struct Params {
 @group(0) @binding(3) var<storage, read> ranges: array<u32>;
 // 6 floats per pixel: r, g, b, alpha, depth sum, contributors.
 @group(0) @binding(4) var<storage, read_write> image: array<f32>;
+// Per pixel: one past the position (in the sorted list) of its last
+// contributor, where the backward pass starts.
+@group(0) @binding(5) var<storage, read_write> last_contributor: array<u32>;
 
 const ALPHA_MAX: f32 = 0.999;
 const ALPHA_MIN: f32 = 0.00392156862745098;
@@ -50,6 +53,7 @@ fn main(
     var colour = vec3<f32>(0.0);
     var depth = 0.0;
     var count = 0u;
+    var last = range.x;
     var done = !inside;
     for (var start = range.x; start < range.y; start += 256u) {
         let k = start + lid;
@@ -86,6 +90,7 @@ fn main(
             depth += batch_depth[j] * w;
             transmittance = next;
             count++;
+            last = start + j + 1u;
         }
         workgroupBarrier();
     }
@@ -98,5 +103,6 @@ fn main(
         image[o + 3u] = 1.0 - transmittance;
         image[o + 4u] = depth;
         image[o + 5u] = f32(count);
+        last_contributor[py * params.width + px] = last;
     }
 }
