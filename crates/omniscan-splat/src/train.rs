@@ -22,11 +22,19 @@
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+use crate::backend::Renderer;
 use crate::backward::backward;
+use crate::gpu::GpuFrame;
 use crate::metrics::{ImageView, psnr, weighted_ssim_and_gradient};
 use crate::raster::{Camera, Colors, Gaussians, Settings, project, rasterize};
 use crate::sh::{C0, coefficients};
 use crate::{SplatError, Splats};
+
+/// One step's forward pass, kept for its backward pass.
+enum Pass {
+    Cpu(crate::raster::Projected<f32>, crate::raster::Render<f32>),
+    Gpu(GpuFrame),
+}
 
 /// One training image with its masks.
 #[derive(Debug, Clone)]
@@ -245,11 +253,14 @@ fn gaussians_at_degree(s: &Splats, degree: usize) -> Gaussians<f32> {
     g
 }
 
-/// Trains `splats` on `views`; `progress(step, loss, psnr)` is called every step.
+/// Trains `splats` on `views`; `progress(step, loss, psnr)` is called every
+/// step. Rendering and its gradients run on `renderer` (the CPU reference or
+/// the GPU kernels); the loss, Adam and densification run on the CPU.
 pub fn train(
     views: &[View],
     mut s: Splats,
     config: &TrainConfig,
+    renderer: &Renderer,
     progress: &mut dyn FnMut(usize, f32, f64),
 ) -> Result<Splats, SplatError> {
     if views.is_empty() {
@@ -300,8 +311,18 @@ pub fn train(
             mode: s.render_mode(),
             background,
         };
-        let p = project(&g, &view.camera, &settings);
-        let r = rasterize(&p, view.camera.width, view.camera.height, background);
+        let pass = match renderer {
+            Renderer::Cpu => {
+                let p = project(&g, &view.camera, &settings);
+                let r = rasterize(&p, view.camera.width, view.camera.height, background);
+                Pass::Cpu(p, r)
+            }
+            Renderer::Gpu(gpu) => Pass::Gpu(gpu.forward(&g, &view.camera, &settings)?),
+        };
+        let r = match &pass {
+            Pass::Cpu(_, r) => r,
+            Pass::Gpu(frame) => &frame.render,
+        };
         let (w, h) = (view.camera.width as usize, view.camera.height as usize);
         let n_px = w * h;
         let target: Vec<[f32; 3]> = (0..n_px)
@@ -348,10 +369,21 @@ pub fn train(
             }
         }
         let loss = (1.0 - lam) * l1 + lam * (1.0 - ssim as f32) + config.lambda_opacity * lo;
-        let grads = backward(&g, &view.camera, &settings, &p, &d_rgb, &d_alpha);
+        let (grads, visible) = match (&pass, renderer) {
+            (Pass::Cpu(p, _), _) => (
+                backward(&g, &view.camera, &settings, p, &d_rgb, &d_alpha),
+                (0..s.len()).map(|i| p.visible(i)).collect::<Vec<bool>>(),
+            ),
+            (Pass::Gpu(frame), Renderer::Gpu(gpu)) => gpu.backward(frame, &d_rgb, &d_alpha)?,
+            (Pass::Gpu(_), Renderer::Cpu) => {
+                return Err(SplatError::Invalid(
+                    "internal error: a GPU frame without a GPU".into(),
+                ));
+            }
+        };
         // Screen-space gradient statistics for densification (gsplat scales by half the image size).
         for i in 0..s.len() {
-            if p.visible(i) {
+            if visible[i] {
                 let gx = grads.means2d[i][0] * w as f32 * 0.5;
                 let gy = grads.means2d[i][1] * h as f32 * 0.5;
                 grad2d_sum[i] += (gx * gx + gy * gy).sqrt();

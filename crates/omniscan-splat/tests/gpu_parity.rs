@@ -262,7 +262,9 @@ fn gpu_gradients_match_the_cpu_reference() {
         let frame = gpu.forward(&g, &cam, &settings).unwrap();
         let (rgb, ..) = compare(&cpu_render, &frame.render);
         assert!(rgb < 1e-4);
-        let got = gpu.backward(&frame, &d_rgb, &d_alpha).unwrap();
+        let (got, visible) = gpu.backward(&frame, &d_rgb, &d_alpha).unwrap();
+        let cpu_visible: Vec<bool> = (0..g.means.len()).map(|i| p.visible(i)).collect();
+        assert_eq!(visible, cpu_visible, "visibility");
         let label = format!("{degree:?} {mode:?}");
         let errors = [
             ("means2d", relative(&cpu.means2d, &got.means2d)),
@@ -295,4 +297,91 @@ fn gpu_gradients_match_the_cpu_reference() {
             );
         }
     }
+}
+
+#[test]
+#[ignore = "needs a Vulkan device (lavapipe: apt-get install mesa-vulkan-drivers)"]
+fn training_on_the_gpu_follows_the_cpu_reference() {
+    use omniscan_splat::Splats;
+    use omniscan_splat::backend::Renderer;
+    use omniscan_splat::train::{TrainConfig, View, train};
+    // Targets: a random scene seen by four cameras around it.
+    let truth = scene(400, None, 31);
+    let views: Vec<View> = (0..4)
+        .map(|i| {
+            let mut cam = camera(64, 48);
+            cam.viewmat[0][3] += 0.1 * i as f32;
+            let (_, r) = render(&truth, &cam, &Settings::default());
+            View {
+                camera: cam,
+                image: r.rgb.clone(),
+                object: r
+                    .alpha
+                    .iter()
+                    .map(|&a| if a > 0.5 { 1.0 } else { 0.0 })
+                    .collect(),
+                gripper: vec![0.0; r.alpha.len()],
+                depth: Vec::new(),
+            }
+        })
+        .collect();
+    // Start from a perturbed copy of another random scene.
+    let start = scene(300, Some(1), 37);
+    let Colors::Sh { coeffs, .. } = &start.colors else {
+        panic!("SH scene")
+    };
+    let splats = Splats {
+        means: start.means.clone(),
+        log_scales: start.scales.iter().map(|s| s.map(f32::ln)).collect(),
+        quats: start.quats.clone(),
+        opacity_logits: start
+            .opacities
+            .iter()
+            .map(|&o| (o.min(0.99) / (1.0 - o.min(0.99))).ln())
+            .collect(),
+        sh_degree: 1,
+        sh: coeffs.clone(),
+        antialiased: false,
+    };
+    let config = TrainConfig {
+        densify_from: 10,
+        densify_every: 10,
+        densify_until: 20,
+        sh_interval: 10,
+        ..TrainConfig::with_steps(30)
+    };
+    let mut cpu_losses = Vec::new();
+    let cpu = train(
+        &views,
+        splats.clone(),
+        &config,
+        &Renderer::Cpu,
+        &mut |_, loss, _| cpu_losses.push(loss),
+    )
+    .unwrap();
+    let mut gpu_losses = Vec::new();
+    let gpu_renderer = Renderer::Gpu(Box::new(renderer()));
+    let gpu = train(&views, splats, &config, &gpu_renderer, &mut |_, loss, _| {
+        gpu_losses.push(loss)
+    })
+    .unwrap();
+    assert_eq!(
+        cpu.len(),
+        gpu.len(),
+        "densification took the same decisions"
+    );
+    for (step, (a, b)) in cpu_losses.iter().zip(&gpu_losses).enumerate() {
+        assert!(
+            (a - b).abs() <= 1e-3 * a.abs().max(1e-3),
+            "step {step}: loss {a} on the CPU, {b} on the GPU"
+        );
+    }
+    let worst = cpu
+        .means
+        .iter()
+        .flatten()
+        .zip(gpu.means.iter().flatten())
+        .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+    assert!(worst < 1e-3, "means drifted apart by {worst}");
+    assert!(cpu_losses.last() < cpu_losses.first(), "the loss falls");
 }

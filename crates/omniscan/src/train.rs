@@ -1,5 +1,6 @@
 //! `omniscan train`: fit a splat model to a capture with the masked losses.
 
+use omniscan_splat::backend::{Backend, Renderer};
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -43,6 +44,9 @@ pub struct TrainArgs {
     /// Initial splats from the visual hull of the masks.
     #[arg(long, default_value_t = 5000)]
     pub initial_points: usize,
+    /// Where rendering and its gradients run: auto (a real GPU when there is one, else the CPU), cpu, or gpu (any device, software ones included).
+    #[arg(long, default_value = "auto")]
+    pub backend: Backend,
     #[arg(long)]
     pub json: bool,
 }
@@ -89,19 +93,27 @@ pub fn run(args: TrainArgs) -> Result<()> {
         .progress_chars("=> "),
     );
     let mut recent = Vec::new();
-    let model = train(&train_views, init, &config, &mut |step, loss, psnr| {
-        recent.push(psnr);
-        if recent.len() > 20 {
-            recent.remove(0);
-        }
-        if step % 10 == 0 {
-            bar.set_message(format!(
-                "loss {loss:.4}, PSNR {:.2} dB",
-                recent.iter().sum::<f64>() / recent.len() as f64
-            ));
-        }
-        bar.set_position(step as u64);
-    })?;
+    let renderer = Renderer::new(args.backend)?;
+    eprintln!("training on {}", renderer.describe());
+    let model = train(
+        &train_views,
+        init,
+        &config,
+        &renderer,
+        &mut |step, loss, psnr| {
+            recent.push(psnr);
+            if recent.len() > 20 {
+                recent.remove(0);
+            }
+            if step % 10 == 0 {
+                bar.set_message(format!(
+                    "loss {loss:.4}, PSNR {:.2} dB",
+                    recent.iter().sum::<f64>() / recent.len() as f64
+                ));
+            }
+            bar.set_position(step as u64);
+        },
+    )?;
     bar.finish_and_clear();
     write_splats(&args.out, &model)?;
     let eval = omniscan_splat::train::evaluate(&model, &test_views);
@@ -196,9 +208,14 @@ pub fn train_merged(
         ..TrainConfig::with_steps(steps)
     };
     let bar = indicatif::ProgressBar::new(steps as u64);
-    let model = train(&train_views, init, &config, &mut |step, _, _| {
-        bar.set_position(step as u64)
-    })?;
+    // The demo stays on the CPU reference: its figures are the same on every machine.
+    let model = train(
+        &train_views,
+        init,
+        &config,
+        &Renderer::Cpu,
+        &mut |step, _, _| bar.set_position(step as u64),
+    )?;
     bar.finish_and_clear();
     write_splats(out, &model)?;
     Ok(

@@ -653,13 +653,14 @@ impl GpuRenderer {
 
     /// Gradients of the loss with respect to every Gaussian parameter (as
     /// [`crate::backward::backward`] returns them), given dL/d(rgb) and
-    /// dL/d(alpha) per pixel of `frame`'s render.
+    /// dL/d(alpha) per pixel of `frame`'s render; and which Gaussians were
+    /// visible (the CPU reference's non-zero radii).
     pub fn backward(
         &self,
         frame: &GpuFrame,
         d_rgb: &[[f32; 3]],
         d_alpha: &[f32],
-    ) -> Result<Gradients<f32>, SplatError> {
+    ) -> Result<(Gradients<f32>, Vec<bool>), SplatError> {
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let result = self.backward_inner(frame, d_rgb, d_alpha);
         if let Some(e) = pollster::block_on(scope.pop()) {
@@ -673,7 +674,7 @@ impl GpuRenderer {
         frame: &GpuFrame,
         d_rgb: &[[f32; 3]],
         d_alpha: &[f32],
-    ) -> Result<Gradients<f32>, SplatError> {
+    ) -> Result<(Gradients<f32>, Vec<bool>), SplatError> {
         let Some((raster_backward, project_backward)) = &self.backward else {
             return Err(SplatError::Invalid(format!(
                 "GPU backend: {} has no subgroup operations, which the backward pass needs; train with --backend cpu",
@@ -696,7 +697,7 @@ impl GpuRenderer {
             .flat_map(|(c, a)| [c[0], c[1], c[2], *a])
             .collect();
         let d_image = self.storage("image gradients", &d_image);
-        let grads2d = self.zeroed("2D gradients", 9 * n);
+        let grads2d = self.zeroed("2D gradients", 10 * n);
         let outputs = [
             self.zeroed("mean gradients", 3 * n),
             self.zeroed("quaternion gradients", 4 * n),
@@ -746,7 +747,7 @@ impl GpuRenderer {
             grid((n as u32).div_ceil(GROUP)),
         );
         // One read-back of everything: the 2D gradients, then each output.
-        let sizes = [9 * n, 3 * n, 4 * n, 3 * n, n, 3 * k * n];
+        let sizes = [10 * n, 3 * n, 4 * n, 3 * n, n, 3 * k * n];
         let total: u64 = sizes.iter().sum();
         let gathered = self.zeroed("gradients", total);
         let mut offset = 0;
@@ -758,7 +759,7 @@ impl GpuRenderer {
         }
         let bytes = self.submit_and_read(encoder, &gathered, 4 * total)?;
         let all: &[f32] = bytemuck::cast_slice(&bytes);
-        let (g2, rest) = all.split_at((9 * n) as usize);
+        let (g2, rest) = all.split_at((10 * n) as usize);
         let (d_means, rest) = rest.split_at((3 * n) as usize);
         let (d_quats, rest) = rest.split_at((4 * n) as usize);
         let (d_scales, rest) = rest.split_at((3 * n) as usize);
@@ -768,11 +769,12 @@ impl GpuRenderer {
                 .map(|c| [c[0], c[1], c[2]])
                 .collect::<Vec<_>>()
         };
-        Ok(Gradients {
-            means2d: g2.chunks_exact(9).map(|c| [c[0], c[1]]).collect(),
-            conics: g2.chunks_exact(9).map(|c| [c[2], c[3], c[4]]).collect(),
-            opacities_view: g2.chunks_exact(9).map(|c| c[5]).collect(),
-            colors_view: g2.chunks_exact(9).map(|c| [c[6], c[7], c[8]]).collect(),
+        let visible = g2.chunks_exact(10).map(|c| c[9] > 0.5).collect();
+        let gradients = Gradients {
+            means2d: g2.chunks_exact(10).map(|c| [c[0], c[1]]).collect(),
+            conics: g2.chunks_exact(10).map(|c| [c[2], c[3], c[4]]).collect(),
+            opacities_view: g2.chunks_exact(10).map(|c| c[5]).collect(),
+            colors_view: g2.chunks_exact(10).map(|c| [c[6], c[7], c[8]]).collect(),
             means: triples(d_means),
             quats: d_quats
                 .chunks_exact(4)
@@ -781,7 +783,8 @@ impl GpuRenderer {
             scales: triples(d_scales),
             opacities: d_opacities.to_vec(),
             colors: triples(d_coeffs),
-        })
+        };
+        Ok((gradients, visible))
     }
 
     /// Submits `encoder` and reads one word of `source` at word `index`.

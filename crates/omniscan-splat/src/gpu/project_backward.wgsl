@@ -25,7 +25,9 @@ struct Camera {
 @group(0) @binding(4) var<storage, read> opacities: array<f32>;
 @group(0) @binding(5) var<storage, read> coeffs: array<f32>;
 @group(0) @binding(6) var<storage, read> projected: array<f32>;
-@group(0) @binding(7) var<storage, read> grads2d: array<f32>;
+// 10 per Gaussian (see rasterize_backward.wgsl); the tenth is set here to
+// 1 for visible Gaussians (the densification statistics count them).
+@group(0) @binding(7) var<storage, read_write> grads2d: array<f32>;
 @group(0) @binding(8) var<storage, read_write> d_means: array<f32>;
 @group(0) @binding(9) var<storage, read_write> d_quats: array<f32>;
 @group(0) @binding(10) var<storage, read_write> d_scales: array<f32>;
@@ -70,10 +72,12 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     }
     let k = cam.counts.y;
     zero_outputs(g, k);
-    if (projected[12u * g + 10u] < 0.5) {
+    let b9 = 10u * g;
+    let visible = projected[12u * g + 10u] > 0.5;
+    grads2d[b9 + 9u] = select(0.0, 1.0, visible);
+    if (!visible) {
         return;
     }
-    let b9 = 9u * g;
     let dm2 = vec2<f32>(grads2d[b9], grads2d[b9 + 1u]);
     let dconic = vec3<f32>(grads2d[b9 + 2u], grads2d[b9 + 3u], grads2d[b9 + 4u]);
     let d_ov = grads2d[b9 + 5u];

@@ -23,7 +23,8 @@ struct Params {
 @group(0) @binding(5) var<storage, read> last_contributor: array<u32>;
 // 4 per pixel: dL/dr, dL/dg, dL/db, dL/dalpha.
 @group(0) @binding(6) var<storage, read> d_image: array<f32>;
-// 9 per Gaussian: mean2d x, y; conic a, b, c; view opacity; view colour r, g, b.
+// 10 per Gaussian: mean2d x, y; conic a, b, c; view opacity; view colour r, g, b;
+// (the projection backward writes visibility in the tenth).
 @group(0) @binding(7) var<storage, read_write> grads: array<atomic<u32>>;
 
 const ALPHA_MAX: f32 = 0.999;
@@ -149,7 +150,7 @@ fn main(
                 let s_opacity = subgroupAdd(d_opacity);
                 let s_colour = subgroupAdd(d_colour);
                 if (lane == 0u) {
-                    let base = 9u * batch_id[j];
+                    let base = 10u * batch_id[j];
                     add_float(base, s_mean.x);
                     add_float(base + 1u, s_mean.y);
                     add_float(base + 2u, s_conic.x);
