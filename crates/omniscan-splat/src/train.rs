@@ -30,7 +30,9 @@ use crate::raster::{Camera, Colors, Gaussians, Settings, project, rasterize};
 use crate::sh::{C0, coefficients};
 use crate::{SplatError, Splats};
 
-/// One step's forward pass, kept for its backward pass.
+/// One step's forward pass, kept for its backward pass (one exists at a
+/// time, so the variants' sizes do not matter).
+#[allow(clippy::large_enum_variant)]
 enum Pass {
     Cpu(crate::raster::Projected<f32>, crate::raster::Render<f32>),
     Gpu(GpuFrame),
