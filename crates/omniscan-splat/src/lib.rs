@@ -15,6 +15,7 @@
 
 pub mod backend;
 pub mod backward;
+pub mod checkpoint;
 pub mod gpu;
 pub mod metrics;
 pub mod model;

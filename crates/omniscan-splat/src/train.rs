@@ -217,18 +217,43 @@ pub fn initial_splats(
     if points.len() < 10 {
         return Err(SplatError::Invalid("the object masks agree on too little space to start from: check the masks and camera poses".into()));
     }
+    splats_from_points(&points, &colours, max_sh_degree)
+}
+
+/// Initial splats at `points` (3DGS's initialisation from a point cloud):
+/// isotropic, sized by the mean distance to the three nearest neighbours,
+/// opacity 0.1, the point's colour (0..1) as the SH DC term.
+pub fn splats_from_points(
+    points: &[[f32; 3]],
+    colours: &[[f32; 3]],
+    max_sh_degree: usize,
+) -> Result<Splats, SplatError> {
+    if points.len() < 4 || colours.len() != points.len() {
+        return Err(SplatError::Invalid(format!(
+            "initial points: {} points with {} colours (at least 4 points, one colour each)",
+            points.len(),
+            colours.len()
+        )));
+    }
+    if points.iter().flatten().any(|v| !v.is_finite()) {
+        return Err(SplatError::Invalid(
+            "initial points: NaN or infinite coordinates".into(),
+        ));
+    }
     // Scale each splat to the distance to its nearest neighbours.
-    let tree: kiddo::ImmutableKdTree<f32, 3> =
-        kiddo::ImmutableKdTree::new_from_slice(&points).expect("points");
+    let tree: kiddo::ImmutableKdTree<f32, 3> = kiddo::ImmutableKdTree::new_from_slice(points)
+        .map_err(|e| SplatError::Invalid(format!("initial points: cannot index them: {e:?}")))?;
     let k = coefficients(max_sh_degree);
     let mut s = Splats {
         sh_degree: max_sh_degree,
         ..Default::default()
     };
-    for (p, c) in points.iter().zip(&colours) {
+    for (p, c) in points.iter().zip(colours) {
         let r = tree
             .query(p)
-            .nearest_n::<kiddo::SquaredEuclidean<f32>>(std::num::NonZero::new(4).unwrap())
+            .nearest_n::<kiddo::SquaredEuclidean<f32>>(
+                std::num::NonZero::<usize>::MIN.saturating_add(3),
+            )
             .execute();
         let d = (r.iter().skip(1).map(|x| x.distance.sqrt()).sum::<f32>() / 3.0).max(1e-5);
         s.means.push(*p);
@@ -260,38 +285,134 @@ fn gaussians_at_degree(s: &Splats, degree: usize) -> Gaussians<f32> {
 /// the GPU kernels); the loss, Adam and densification run on the CPU.
 pub fn train(
     views: &[View],
-    mut s: Splats,
+    s: Splats,
     config: &TrainConfig,
     renderer: &Renderer,
+    progress: &mut dyn FnMut(usize, f32, f64),
+) -> Result<Splats, SplatError> {
+    train_resumable(views, Start::Fresh(s), config, renderer, None, progress)
+}
+
+/// Where training starts.
+#[derive(Debug, Clone)]
+pub enum Start {
+    Fresh(Splats),
+    /// From a checkpoint written by an earlier run with the same settings.
+    Resume(Box<TrainState>),
+}
+
+/// Periodic checkpoints: `save` is called with the whole training state
+/// every `every` steps.
+pub struct Checkpoints<'a> {
+    pub every: usize,
+    pub save: &'a mut dyn FnMut(&TrainState) -> Result<(), SplatError>,
+}
+
+/// Everything training needs to continue exactly where it stopped: the
+/// splats, Adam's moments, the densification statistics, the view order and
+/// the random generator's position.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrainState {
+    /// Steps done.
+    pub step: usize,
+    pub splats: Splats,
+    /// Scene extent measured at the start (it scales the position rate).
+    pub extent: f32,
+    /// First and second moments of the five parameter groups.
+    pub moments: [(Vec<f32>, Vec<f32>); 5],
+    pub grad2d_sum: Vec<f32>,
+    pub grad2d_count: Vec<u32>,
+    /// Views still to visit in this epoch (taken from the back).
+    pub order: Vec<usize>,
+    pub rng_word_pos: u128,
+    /// The settings and view count the state belongs to.
+    pub fingerprint: String,
+}
+
+/// What a checkpoint must match to be resumed.
+fn fingerprint(config: &TrainConfig, views: usize) -> String {
+    format!("{config:?} views={views}")
+}
+
+/// Training with optional resumption and checkpoints (see [`train`]).
+pub fn train_resumable(
+    views: &[View],
+    start: Start,
+    config: &TrainConfig,
+    renderer: &Renderer,
+    mut checkpoints: Option<Checkpoints<'_>>,
     progress: &mut dyn FnMut(usize, f32, f64),
 ) -> Result<Splats, SplatError> {
     if views.is_empty() {
         return Err(SplatError::Invalid("no training views".into()));
     }
-    s.validate()?;
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed ^ 0x7a11);
-    // Scene extent: the splats' spread around their centre.
-    let extent = {
-        let n = s.len().max(1) as f32;
-        let c = [0, 1, 2].map(|a| s.means.iter().map(|m| m[a]).sum::<f32>() / n);
-        s.means
-            .iter()
-            .map(|m| ((m[0] - c[0]).powi(2) + (m[1] - c[1]).powi(2) + (m[2] - c[2]).powi(2)).sqrt())
-            .fold(0.0, f32::max)
-            .max(1e-3)
-    };
+    let print = fingerprint(config, views.len());
+    let (mut s, first_step, extent, mut adam, mut grad2d_sum, mut grad2d_count, mut order) =
+        match start {
+            Start::Fresh(s) => {
+                s.validate()?;
+                // Scene extent: the splats' spread around their centre.
+                let extent = {
+                    let n = s.len().max(1) as f32;
+                    let c = [0, 1, 2].map(|a| s.means.iter().map(|m| m[a]).sum::<f32>() / n);
+                    s.means
+                        .iter()
+                        .map(|m| {
+                            ((m[0] - c[0]).powi(2) + (m[1] - c[1]).powi(2) + (m[2] - c[2]).powi(2))
+                                .sqrt()
+                        })
+                        .fold(0.0, f32::max)
+                        .max(1e-3)
+                };
+                let k = s.sh_coefficients();
+                let adam = [
+                    Adam::new(s.len() * 3),
+                    Adam::new(s.len() * 3),
+                    Adam::new(s.len() * 4),
+                    Adam::new(s.len()),
+                    Adam::new(s.len() * k * 3),
+                ];
+                let n = s.len();
+                (
+                    s,
+                    1,
+                    extent,
+                    adam,
+                    vec![0.0f32; n],
+                    vec![0u32; n],
+                    Vec::new(),
+                )
+            }
+            Start::Resume(state) => {
+                let state = *state;
+                if state.fingerprint != print {
+                    return Err(SplatError::Invalid(format!(
+                        "the checkpoint was written with other settings or views ({}); now: {print}",
+                        state.fingerprint
+                    )));
+                }
+                state.splats.validate()?;
+                if state.order.iter().any(|&i| i >= views.len()) {
+                    return Err(SplatError::Invalid(
+                        "the checkpoint's view order names views that do not exist".into(),
+                    ));
+                }
+                rng.set_word_pos(state.rng_word_pos);
+                let adam = state.moments.map(|(m, v)| Adam { m, v });
+                (
+                    state.splats,
+                    state.step + 1,
+                    state.extent,
+                    adam,
+                    state.grad2d_sum,
+                    state.grad2d_count,
+                    state.order,
+                )
+            }
+        };
     let k = s.sh_coefficients();
-    let mut adam = [
-        Adam::new(s.len() * 3),
-        Adam::new(s.len() * 3),
-        Adam::new(s.len() * 4),
-        Adam::new(s.len()),
-        Adam::new(s.len() * k * 3),
-    ];
-    let mut grad2d_sum = vec![0.0f32; s.len()];
-    let mut grad2d_count = vec![0u32; s.len()];
-    let mut order: Vec<usize> = Vec::new();
-    for step in 1..=config.steps {
+    for step in first_step..=config.steps {
         if order.is_empty() {
             order = (0..views.len()).collect();
             for i in (1..order.len()).rev() {
@@ -476,6 +597,24 @@ pub fn train(
             for o in &mut s.opacity_logits {
                 *o = o.min(cap);
             }
+        }
+        if let Some(c) = checkpoints.as_mut()
+            && c.every > 0
+            && step % c.every == 0
+            && step < config.steps
+        {
+            let state = TrainState {
+                step,
+                splats: s.clone(),
+                extent,
+                moments: adam.each_ref().map(|a| (a.m.clone(), a.v.clone())),
+                grad2d_sum: grad2d_sum.clone(),
+                grad2d_count: grad2d_count.clone(),
+                order: order.clone(),
+                rng_word_pos: rng.get_word_pos(),
+                fingerprint: print.clone(),
+            };
+            (c.save)(&state)?;
         }
     }
     s.validate()?;
@@ -858,4 +997,147 @@ pub fn views_from_cameras_json(
         return Err(SplatError::file(path, "no frames"));
     }
     Ok(views)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Four 48x36 views of a random scene, and a different scene to start from.
+    fn problem() -> (Vec<View>, Splats) {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let mut random_splats = |n: usize, degree: usize| {
+            let k = coefficients(degree);
+            Splats {
+                means: (0..n)
+                    .map(|_| {
+                        [
+                            rng.random_range(-0.4..0.4),
+                            rng.random_range(-0.3..0.3),
+                            rng.random_range(1.8..2.2),
+                        ]
+                    })
+                    .collect(),
+                log_scales: (0..n)
+                    .map(|_| [rng.random_range(-4.0f32..-2.5); 3])
+                    .collect(),
+                quats: (0..n)
+                    .map(|_| [1.0, rng.random_range(-0.3..0.3), 0.0, 0.0])
+                    .collect(),
+                opacity_logits: (0..n).map(|_| rng.random_range(-1.0..2.0)).collect(),
+                sh_degree: degree,
+                sh: (0..n * k)
+                    .map(|_| [0, 1, 2].map(|_| rng.random_range(-1.0f32..1.0)))
+                    .collect(),
+                antialiased: false,
+            }
+        };
+        let truth = random_splats(150, 0).gaussians::<f32>();
+        let start = random_splats(120, 1);
+        let views = (0..4)
+            .map(|i| {
+                let camera = Camera {
+                    viewmat: [
+                        [1.0, 0.0, 0.0, 0.05 * i as f32],
+                        [0.0, 1.0, 0.0, 0.0],
+                        [0.0, 0.0, 1.0, 0.0],
+                        [0.0, 0.0, 0.0, 1.0],
+                    ],
+                    fx: 50.0,
+                    fy: 50.0,
+                    cx: 24.0,
+                    cy: 18.0,
+                    width: 48,
+                    height: 36,
+                    near: 0.01,
+                    far: 100.0,
+                };
+                let (_, r) = crate::raster::render(&truth, &camera, &Settings::default());
+                View {
+                    camera,
+                    image: r.rgb.clone(),
+                    object: r
+                        .alpha
+                        .iter()
+                        .map(|&a| if a > 0.5 { 1.0 } else { 0.0 })
+                        .collect(),
+                    gripper: vec![0.0; r.alpha.len()],
+                    depth: Vec::new(),
+                }
+            })
+            .collect();
+        (views, start)
+    }
+
+    #[test]
+    fn a_resumed_run_ends_with_the_model_of_an_uninterrupted_one() {
+        let (views, start) = problem();
+        let config = TrainConfig {
+            densify_from: 5,
+            densify_every: 5,
+            densify_until: 20,
+            sh_interval: 8,
+            reset_every: 15,
+            ..TrainConfig::with_steps(24)
+        };
+        let straight = train(
+            &views,
+            start.clone(),
+            &config,
+            &Renderer::Cpu,
+            &mut |_, _, _| {},
+        )
+        .unwrap();
+        // Stop after the checkpoint at step 12 (mid-epoch, after densification).
+        let tmp = tempfile::tempdir().unwrap();
+        let path = tmp.path().join("state.safetensors");
+        let short = TrainConfig { ..config };
+        let mut saved = 0;
+        let mut save = |state: &TrainState| {
+            saved += 1;
+            if state.step == 12 {
+                crate::checkpoint::save(state, &path)?;
+            }
+            Ok(())
+        };
+        train_resumable(
+            &views,
+            Start::Fresh(start.clone()),
+            &short,
+            &Renderer::Cpu,
+            Some(Checkpoints {
+                every: 4,
+                save: &mut save,
+            }),
+            &mut |_, _, _| {},
+        )
+        .unwrap();
+        assert_eq!(saved, 5, "checkpoints at 4, 8, 12, 16, 20");
+        let state = crate::checkpoint::load(&path).unwrap();
+        assert_eq!(state.step, 12);
+        let mut steps = Vec::new();
+        let resumed = train_resumable(
+            &views,
+            Start::Resume(Box::new(state.clone())),
+            &config,
+            &Renderer::Cpu,
+            None,
+            &mut |step, _, _| steps.push(step),
+        )
+        .unwrap();
+        assert_eq!(steps.first(), Some(&13));
+        assert_eq!(resumed, straight, "bit-identical to the uninterrupted run");
+        // Other settings are refused.
+        let other = TrainConfig { seed: 1, ..config };
+        let err = train_resumable(
+            &views,
+            Start::Resume(Box::new(state)),
+            &other,
+            &Renderer::Cpu,
+            None,
+            &mut |_, _, _| {},
+        )
+        .unwrap_err();
+        assert!(err.to_string().contains("other settings"), "{err}");
+    }
 }

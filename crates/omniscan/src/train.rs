@@ -10,7 +10,10 @@ use serde_json::json;
 use omniscan_core::capture::{Arm, Capture};
 use omniscan_core::poses::ViewSet;
 use omniscan_splat::ply::write_splats;
-use omniscan_splat::train::{TrainConfig, initial_splats, train, views_from_capture};
+use omniscan_splat::train::{
+    Checkpoints, Start, TrainConfig, initial_splats, splats_from_points, train, train_resumable,
+    views_from_capture,
+};
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
 pub enum ArmSet {
@@ -41,9 +44,18 @@ pub struct TrainArgs {
     pub seed: u64,
     #[arg(long, default_value_t = 3)]
     pub sh_degree: usize,
-    /// Initial splats from the visual hull of the masks.
+    /// Initial splats from the visual hull of the masks (without --init).
     #[arg(long, default_value_t = 5000)]
     pub initial_points: usize,
+    /// Start from this point cloud instead (PLY, PCD or XYZ, with colours if it has them; a 3DGS PLY gives its centres), in the views' frame: the holding gripper's for a capture, metres.
+    #[arg(long)]
+    pub init: Option<PathBuf>,
+    /// Write the whole training state every N steps to OUT.checkpoint.safetensors (0: never); it is removed when training ends.
+    #[arg(long, default_value_t = 500)]
+    pub checkpoint_every: usize,
+    /// Continue an interrupted run from OUT.checkpoint.safetensors (same capture and settings); ends with the model an uninterrupted run would have given.
+    #[arg(long)]
+    pub resume: bool,
     /// Where rendering and its gradients run: auto (a real GPU when there is one, else the CPU), cpu, or gpu (any device, software ones included).
     #[arg(long, default_value = "auto")]
     pub backend: Backend,
@@ -77,8 +89,6 @@ pub fn run(args: TrainArgs) -> Result<()> {
         }
     }
     let start = Instant::now();
-    let init = initial_splats(&train_views, args.initial_points, args.sh_degree, args.seed)
-        .context("initialisation")?;
     let config = TrainConfig {
         seed: args.seed,
         max_sh_degree: args.sh_degree,
@@ -95,11 +105,61 @@ pub fn run(args: TrainArgs) -> Result<()> {
     let mut recent = Vec::new();
     let renderer = Renderer::new(args.backend)?;
     eprintln!("training on {}", renderer.describe());
-    let model = train(
+    let initial = || -> Result<_> {
+        Ok(match &args.init {
+            Some(path) => {
+                let cloud = omniscan_register::cloud::read_cloud(path)?;
+                let points: Vec<[f32; 3]> = cloud
+                    .points
+                    .iter()
+                    .map(|p| [p.x as f32, p.y as f32, p.z as f32])
+                    .collect();
+                let colours = if cloud.colors.len() == points.len() {
+                    cloud.colors.clone()
+                } else {
+                    vec![[0.5; 3]; points.len()]
+                };
+                splats_from_points(&points, &colours, args.sh_degree)
+                    .with_context(|| format!("initialising from {}", path.display()))?
+            }
+            None => initial_splats(&train_views, args.initial_points, args.sh_degree, args.seed)
+                .context("initialisation")?,
+        })
+    };
+    let checkpoint_path = {
+        let mut name = args.out.as_os_str().to_owned();
+        name.push(".checkpoint.safetensors");
+        PathBuf::from(name)
+    };
+    let start_from = if args.resume {
+        if !checkpoint_path.is_file() {
+            bail!(
+                "--resume: no checkpoint at {} (it is written every --checkpoint-every steps)",
+                checkpoint_path.display()
+            );
+        }
+        let state = omniscan_splat::checkpoint::load(&checkpoint_path)?;
+        eprintln!(
+            "resuming after step {} from {}",
+            state.step,
+            checkpoint_path.display()
+        );
+        Start::Resume(Box::new(state))
+    } else {
+        Start::Fresh(initial()?)
+    };
+    let mut save = |state: &omniscan_splat::train::TrainState| {
+        omniscan_splat::checkpoint::save(state, &checkpoint_path)
+    };
+    let model = train_resumable(
         &train_views,
-        init,
+        start_from,
         &config,
         &renderer,
+        Some(Checkpoints {
+            every: args.checkpoint_every,
+            save: &mut save,
+        }),
         &mut |step, loss, psnr| {
             recent.push(psnr);
             if recent.len() > 20 {
@@ -116,6 +176,10 @@ pub fn run(args: TrainArgs) -> Result<()> {
     )?;
     bar.finish_and_clear();
     write_splats(&args.out, &model)?;
+    if checkpoint_path.is_file() {
+        std::fs::remove_file(&checkpoint_path)
+            .with_context(|| format!("removing {}", checkpoint_path.display()))?;
+    }
     let eval = omniscan_splat::train::evaluate(&model, &test_views);
     let report = json!({
         "model": args.out,

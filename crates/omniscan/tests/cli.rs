@@ -382,6 +382,47 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
         "{long}"
     );
     assert!(long["test"]["lpips"].is_null());
+    // Checkpoints are written during training and removed at its end.
+    let checkpoint = tmp.path().join("model.ply.checkpoint.safetensors");
+    assert!(!checkpoint.exists());
+    let train_more = |extra: &[&str]| {
+        let mut a = vec![
+            "train",
+            capture.to_str().unwrap(),
+            "--out",
+            model.to_str().unwrap(),
+            "--steps",
+            "20",
+            "--sh-degree",
+            "0",
+            "--backend",
+            "cpu",
+            "--json",
+        ];
+        a.extend_from_slice(extra);
+        omniscan(&a)
+    };
+    let out = train_more(&["--resume"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("no checkpoint"));
+    // Starting from a point cloud: the first model's splat centres.
+    let out = train_more(&["--init", model.to_str().unwrap()]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let from_points: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!(
+        from_points["splats"].as_u64().unwrap() > 100,
+        "{from_points}"
+    );
+    let out = train_more(&["--init", tmp.path().join("none.ply").to_str().unwrap()]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("none.ply"));
+    // Re-create the long model for the evaluation below.
+    let long = run("300");
+    assert!(metric(&long, "psnr_masked") > 22.0);
     let out = omniscan(&[
         "eval",
         model.to_str().unwrap(),

@@ -1,0 +1,235 @@
+//! Training checkpoints: a [`TrainState`] in one safetensors file, written
+//! atomically, so an interrupted `omniscan train` continues where it stopped
+//! and ends with the model an uninterrupted run would have given.
+//!
+//! Tensors: `means` `[N,3]`, `log_scales` `[N,3]`, `quats` `[N,4]`,
+//! `opacity_logits` `[N]`, `sh` `[N·K,3]` (float32); `adam.<g>.m`,
+//! `adam.<g>.v` for the five parameter groups (float32); `grad2d_sum`
+//! (float32), `grad2d_count` (uint32), `order` (uint32). Metadata: `format`
+//! = `omniscan-train-state-v1`, `step`, `extent`, `rng_word_pos`,
+//! `sh_degree`, `antialiased`, `fingerprint`.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use safetensors::{Dtype, SafeTensors, tensor::TensorView};
+
+use crate::train::TrainState;
+use crate::{SplatError, Splats};
+
+pub const FORMAT: &str = "omniscan-train-state-v1";
+
+fn bytes_f32(v: &[f32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+fn bytes_u32(v: &[u32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+/// Writes `state` to `path` atomically.
+pub fn save(state: &TrainState, path: &Path) -> Result<(), SplatError> {
+    let s = &state.splats;
+    let n = s.len();
+    let flat3 = |v: &[[f32; 3]]| v.iter().flatten().copied().collect::<Vec<f32>>();
+    let mut tensors: Vec<(String, Dtype, Vec<usize>, Vec<u8>)> = vec![
+        (
+            "means".into(),
+            Dtype::F32,
+            vec![n, 3],
+            bytes_f32(&flat3(&s.means)),
+        ),
+        (
+            "log_scales".into(),
+            Dtype::F32,
+            vec![n, 3],
+            bytes_f32(&flat3(&s.log_scales)),
+        ),
+        (
+            "quats".into(),
+            Dtype::F32,
+            vec![n, 4],
+            bytes_f32(&s.quats.iter().flatten().copied().collect::<Vec<_>>()),
+        ),
+        (
+            "opacity_logits".into(),
+            Dtype::F32,
+            vec![n],
+            bytes_f32(&s.opacity_logits),
+        ),
+        (
+            "sh".into(),
+            Dtype::F32,
+            vec![s.sh.len(), 3],
+            bytes_f32(&flat3(&s.sh)),
+        ),
+        (
+            "grad2d_sum".into(),
+            Dtype::F32,
+            vec![state.grad2d_sum.len()],
+            bytes_f32(&state.grad2d_sum),
+        ),
+        (
+            "grad2d_count".into(),
+            Dtype::U32,
+            vec![state.grad2d_count.len()],
+            bytes_u32(&state.grad2d_count),
+        ),
+        (
+            "order".into(),
+            Dtype::U32,
+            vec![state.order.len()],
+            bytes_u32(&state.order.iter().map(|&i| i as u32).collect::<Vec<_>>()),
+        ),
+    ];
+    for (g, (m, v)) in state.moments.iter().enumerate() {
+        tensors.push((
+            format!("adam.{g}.m"),
+            Dtype::F32,
+            vec![m.len()],
+            bytes_f32(m),
+        ));
+        tensors.push((
+            format!("adam.{g}.v"),
+            Dtype::F32,
+            vec![v.len()],
+            bytes_f32(v),
+        ));
+    }
+    let views = tensors
+        .iter()
+        .map(|(name, dtype, shape, data)| {
+            TensorView::new(*dtype, shape.clone(), data).map(|v| (name.clone(), v))
+        })
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| SplatError::file(path, format!("cannot encode the checkpoint: {e}")))?;
+    let metadata = HashMap::from([
+        ("format".to_string(), FORMAT.to_string()),
+        ("step".to_string(), state.step.to_string()),
+        ("extent".to_string(), state.extent.to_string()),
+        ("rng_word_pos".to_string(), state.rng_word_pos.to_string()),
+        ("sh_degree".to_string(), s.sh_degree.to_string()),
+        ("antialiased".to_string(), s.antialiased.to_string()),
+        ("fingerprint".to_string(), state.fingerprint.clone()),
+    ]);
+    let encoded = safetensors::serialize(views, Some(metadata))
+        .map_err(|e| SplatError::file(path, format!("cannot encode the checkpoint: {e}")))?;
+    omniscan_core::io::write_atomic(path, &encoded)?;
+    Ok(())
+}
+
+/// Reads a checkpoint written by [`save`], checking every shape.
+pub fn load(path: &Path) -> Result<TrainState, SplatError> {
+    let bytes = std::fs::read(path).map_err(|e| SplatError::file(path, e.to_string()))?;
+    let bad = |m: String| SplatError::file(path, m);
+    let (_, header) = SafeTensors::read_metadata(&bytes)
+        .map_err(|e| bad(format!("not a safetensors file: {e}")))?;
+    let info = header.metadata().clone().unwrap_or_default();
+    if info.get("format").map(String::as_str) != Some(FORMAT) {
+        return Err(bad(format!(
+            "not an omniscan training checkpoint (format {:?})",
+            info.get("format")
+        )));
+    }
+    let meta = |key: &str| -> Result<&String, SplatError> {
+        info.get(key)
+            .ok_or_else(|| bad(format!("metadata `{key}` is missing")))
+    };
+    let number = |key: &str| -> Result<u128, SplatError> {
+        meta(key)?
+            .parse()
+            .map_err(|_| bad(format!("metadata `{key}` is not a number")))
+    };
+    let tensors = SafeTensors::deserialize(&bytes)
+        .map_err(|e| bad(format!("not a safetensors file: {e}")))?;
+    let read = |name: &str, dtype: Dtype, width: usize| -> Result<Vec<[u8; 4]>, SplatError> {
+        let view = tensors
+            .tensor(name)
+            .map_err(|_| bad(format!("tensor `{name}` is missing")))?;
+        let shape = view.shape();
+        let ok_shape = match width {
+            1 => shape.len() == 1,
+            w => shape.len() == 2 && shape[1] == w,
+        };
+        if view.dtype() != dtype || !ok_shape {
+            return Err(bad(format!(
+                "tensor `{name}` is {:?} {shape:?}",
+                view.dtype()
+            )));
+        }
+        Ok(view
+            .data()
+            .chunks_exact(4)
+            .map(|b| [b[0], b[1], b[2], b[3]])
+            .collect())
+    };
+    let floats = |name: &str, width: usize| -> Result<Vec<f32>, SplatError> {
+        let v: Vec<f32> = read(name, Dtype::F32, width)?
+            .into_iter()
+            .map(f32::from_le_bytes)
+            .collect();
+        if v.iter().any(|x| !x.is_finite()) {
+            return Err(bad(format!("tensor `{name}` holds NaN or infinite values")));
+        }
+        Ok(v)
+    };
+    let words = |name: &str| -> Result<Vec<u32>, SplatError> {
+        Ok(read(name, Dtype::U32, 1)?
+            .into_iter()
+            .map(u32::from_le_bytes)
+            .collect())
+    };
+    let triples = |v: Vec<f32>| {
+        v.chunks_exact(3)
+            .map(|c| [c[0], c[1], c[2]])
+            .collect::<Vec<_>>()
+    };
+    let splats = Splats {
+        means: triples(floats("means", 3)?),
+        log_scales: triples(floats("log_scales", 3)?),
+        quats: floats("quats", 4)?
+            .chunks_exact(4)
+            .map(|c| [c[0], c[1], c[2], c[3]])
+            .collect(),
+        opacity_logits: floats("opacity_logits", 1)?,
+        sh_degree: number("sh_degree")? as usize,
+        sh: triples(floats("sh", 3)?),
+        antialiased: meta("antialiased")? == "true",
+    };
+    splats.validate().map_err(|e| bad(e.to_string()))?;
+    let n = splats.len();
+    let k = splats.sh_coefficients();
+    let sizes = [3 * n, 3 * n, 4 * n, n, 3 * k * n];
+    let mut moments: [(Vec<f32>, Vec<f32>); 5] = Default::default();
+    for (g, size) in sizes.into_iter().enumerate() {
+        let m = floats(&format!("adam.{g}.m"), 1)?;
+        let v = floats(&format!("adam.{g}.v"), 1)?;
+        if m.len() != size || v.len() != size {
+            return Err(bad(format!(
+                "Adam moments of group {g} do not match {n} splats"
+            )));
+        }
+        moments[g] = (m, v);
+    }
+    let grad2d_sum = floats("grad2d_sum", 1)?;
+    let grad2d_count = words("grad2d_count")?;
+    if grad2d_sum.len() != n || grad2d_count.len() != n {
+        return Err(bad(format!(
+            "densification statistics do not match {n} splats"
+        )));
+    }
+    let extent: f32 = meta("extent")?
+        .parse()
+        .map_err(|_| bad("metadata `extent` is not a number".into()))?;
+    Ok(TrainState {
+        step: number("step")? as usize,
+        splats,
+        extent,
+        moments,
+        grad2d_sum,
+        grad2d_count,
+        order: words("order")?.into_iter().map(|i| i as usize).collect(),
+        rng_word_pos: number("rng_word_pos")?,
+        fingerprint: meta("fingerprint")?.clone(),
+    })
+}
