@@ -67,19 +67,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
     if args.sh_degree > 3 {
         bail!("--sh-degree must be 0-3");
     }
-    let all = if args.capture.extension().is_some_and(|e| e == "json")
-        && !args.capture.ends_with("capture.json")
-    {
-        omniscan_splat::train::views_from_cameras_json(&args.capture, args.downscale)?
-    } else {
-        let capture = Capture::load(&args.capture)?;
-        let set = match args.arm {
-            ArmSet::Left => ViewSet::Arm(Arm::Left),
-            ArmSet::Right => ViewSet::Arm(Arm::Right),
-            ArmSet::Both => ViewSet::merged_from_handover(&capture),
-        };
-        views_from_capture(&capture, set, args.downscale)?
-    };
+    let all = load_views(&args.capture, args.arm, args.downscale)?;
     let (mut train_views, mut test_views) = (Vec::new(), Vec::new());
     for (i, v) in all.into_iter().enumerate() {
         if args.hold_out_every > 0 && i % args.hold_out_every == args.hold_out_every - 1 {
@@ -209,28 +197,77 @@ pub fn run(args: TrainArgs) -> Result<()> {
 pub struct EvalArgs {
     /// The splat model (3DGS PLY).
     pub model: PathBuf,
-    /// The capture whose views to compare against.
+    /// The capture whose views to compare against (or a photo set's cameras.json).
     pub capture: PathBuf,
     #[arg(long, value_enum, default_value = "left")]
     pub arm: ArmSet,
     /// Shrink images by this integer factor before comparing.
     #[arg(long, default_value_t = 1)]
     pub downscale: u32,
+    /// Also write, per view, the photo (object pixels) beside the render as PNG into this directory.
+    #[arg(long)]
+    pub renders: Option<PathBuf>,
     #[arg(long)]
     pub json: bool,
+}
+
+/// The views of a capture (one arm, or both merged at the handover), or of a
+/// calibrated photo set's `cameras.json`.
+fn load_views(
+    path: &std::path::Path,
+    arm: ArmSet,
+    downscale: u32,
+) -> Result<Vec<omniscan_splat::train::View>> {
+    if path.extension().is_some_and(|e| e == "json") && !path.ends_with("capture.json") {
+        return Ok(omniscan_splat::train::views_from_cameras_json(
+            path, downscale,
+        )?);
+    }
+    let capture = Capture::load(path)?;
+    let set = match arm {
+        ArmSet::Left => ViewSet::Arm(Arm::Left),
+        ArmSet::Right => ViewSet::Arm(Arm::Right),
+        ArmSet::Both => ViewSet::merged_from_handover(&capture),
+    };
+    Ok(views_from_capture(&capture, set, downscale)?)
 }
 
 /// `omniscan eval`: PSNR/SSIM of a model against a capture's images, whole
 /// and masked (object ∩ accumulation, gripper excluded).
 pub fn eval(args: EvalArgs) -> Result<()> {
     let model = omniscan_splat::ply::read_splats(&args.model)?;
-    let capture = Capture::load(&args.capture)?;
-    let set = match args.arm {
-        ArmSet::Left => ViewSet::Arm(Arm::Left),
-        ArmSet::Right => ViewSet::Arm(Arm::Right),
-        ArmSet::Both => ViewSet::merged_from_handover(&capture),
-    };
-    let views = views_from_capture(&capture, set, args.downscale)?;
+    let views = load_views(&args.capture, args.arm, args.downscale)?;
+    if let Some(dir) = &args.renders {
+        let g = model.gaussians::<f32>();
+        let settings = omniscan_splat::raster::Settings {
+            eps2d: 0.3,
+            mode: model.render_mode(),
+            background: [0.0; 3],
+        };
+        for (i, v) in views.iter().enumerate() {
+            let (_, r) = omniscan_splat::raster::render(&g, &v.camera, &settings);
+            let (w, h) = (v.camera.width as usize, v.camera.height as usize);
+            let byte = |x: f32| (x.clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
+            let mut data = Vec::with_capacity(2 * w * h * 3);
+            for y in 0..h {
+                for x in 0..w {
+                    let p = y * w + x;
+                    data.extend(v.image[p].map(|c| byte(c * v.object[p])));
+                }
+                for x in 0..w {
+                    data.extend(r.rgb[y * w + x].map(byte));
+                }
+            }
+            omniscan_core::image_io::write_rgb(
+                &dir.join(format!("view_{i:03}.png")),
+                &omniscan_core::image_io::RgbImage {
+                    width: 2 * w as u32,
+                    height: h as u32,
+                    data,
+                },
+            )?;
+        }
+    }
     let report = omniscan_splat::train::evaluate(&model, &views);
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
