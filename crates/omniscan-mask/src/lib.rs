@@ -56,6 +56,8 @@ pub enum MaskError {
     Sim(#[from] omniscan_sim::SimError),
     #[error("{path}: {message}")]
     File { path: PathBuf, message: String },
+    #[error(transparent)]
+    Onnx(#[from] omniscan_onnx::OnnxError),
     #[error("{0}")]
     Invalid(String),
 }

@@ -17,6 +17,7 @@ pub mod backend;
 pub mod backward;
 pub mod checkpoint;
 pub mod gpu;
+pub mod lpips;
 pub mod metrics;
 pub mod model;
 pub mod orbit;

@@ -819,7 +819,11 @@ pub fn views_from_capture(
 
 /// PSNR and SSIM over whole images (on black) and masked by object ∩
 /// accumulation minus gripper (the paper's evaluation), averaged over views.
-pub fn evaluate(model: &Splats, views: &[View]) -> serde_json::Value {
+pub fn evaluate(
+    model: &Splats,
+    views: &[View],
+    lpips: Option<&crate::lpips::Lpips>,
+) -> Result<serde_json::Value, SplatError> {
     use crate::metrics::ssim;
     let g = model.gaussians::<f32>();
     let settings = Settings {
@@ -829,6 +833,7 @@ pub fn evaluate(model: &Splats, views: &[View]) -> serde_json::Value {
     };
     let (mut p_all, mut s_all, mut p_mask, mut s_mask) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let (mut l_all, mut l_mask) = (Vec::new(), Vec::new());
     for v in views {
         let p = project(&g, &v.camera, &settings);
         let r = rasterize(&p, v.camera.width, v.camera.height, [0.0; 3]);
@@ -864,6 +869,12 @@ pub fn evaluate(model: &Splats, views: &[View]) -> serde_json::Value {
         if let Some(x) = ssim(&a, &b, Some(&mask)) {
             s_mask.push(x);
         }
+        if let Some(net) = lpips {
+            l_all.push(net.distance(&r.rgb, &target, w, h, None)?);
+            if mask.iter().any(|&m| m) {
+                l_mask.push(net.distance(&r.rgb, &target, w, h, Some(&mask))?);
+            }
+        }
     }
     let mean = |v: &Vec<f64>| {
         if v.is_empty() {
@@ -872,15 +883,20 @@ pub fn evaluate(model: &Splats, views: &[View]) -> serde_json::Value {
             Some(v.iter().sum::<f64>() / v.len() as f64)
         }
     };
-    serde_json::json!({
+    let mut report = serde_json::json!({
         "views": views.len(),
         "psnr": mean(&p_all),
         "ssim": mean(&s_all),
         "psnr_masked": mean(&p_mask),
         "ssim_masked": mean(&s_mask),
-        "lpips": serde_json::Value::Null,
-        "lpips_note": "LPIPS not computed: no network weights were given",
-    })
+        "lpips": mean(&l_all),
+        "lpips_masked": mean(&l_mask),
+    });
+    if lpips.is_none() {
+        report["lpips_note"] =
+            "LPIPS not computed: no network was given (--lpips FILE.onnx)".into();
+    }
+    Ok(report)
 }
 
 /// Training views from a calibrated photo set: a `cameras.json` with

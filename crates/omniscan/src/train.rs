@@ -56,6 +56,12 @@ pub struct TrainArgs {
     /// Continue an interrupted run from OUT.checkpoint.safetensors (same capture and settings); ends with the model an uninterrupted run would have given.
     #[arg(long)]
     pub resume: bool,
+    /// An LPIPS network exported to ONNX (two [1,3,H,W] inputs in [-1,1], one distance out) for the `lpips` metrics; needs ONNX Runtime (--onnx-runtime or ORT_DYLIB_PATH).
+    #[arg(long)]
+    pub lpips: Option<PathBuf>,
+    /// ONNX Runtime's shared library for --lpips (default: $ORT_DYLIB_PATH, else python3's onnxruntime package).
+    #[arg(long)]
+    pub onnx_runtime: Option<PathBuf>,
     /// Where rendering and its gradients run: auto (a real GPU when there is one, else the CPU), cpu, or gpu (any device, software ones included).
     #[arg(long, default_value = "auto")]
     pub backend: Backend,
@@ -168,7 +174,8 @@ pub fn run(args: TrainArgs) -> Result<()> {
         std::fs::remove_file(&checkpoint_path)
             .with_context(|| format!("removing {}", checkpoint_path.display()))?;
     }
-    let eval = omniscan_splat::train::evaluate(&model, &test_views);
+    let lpips = load_lpips(&args.lpips, args.onnx_runtime.as_deref())?;
+    let eval = omniscan_splat::train::evaluate(&model, &test_views, lpips.as_ref())?;
     let report = json!({
         "model": args.out,
         "splats": model.len(),
@@ -204,11 +211,27 @@ pub struct EvalArgs {
     /// Shrink images by this integer factor before comparing.
     #[arg(long, default_value_t = 1)]
     pub downscale: u32,
+    /// An LPIPS network exported to ONNX (two [1,3,H,W] inputs in [-1,1], one distance out) for the `lpips` metrics; needs ONNX Runtime (--onnx-runtime or ORT_DYLIB_PATH).
+    #[arg(long)]
+    pub lpips: Option<PathBuf>,
+    /// ONNX Runtime's shared library for --lpips (default: $ORT_DYLIB_PATH, else python3's onnxruntime package).
+    #[arg(long)]
+    pub onnx_runtime: Option<PathBuf>,
     /// Also write, per view, the photo (object pixels) beside the render as PNG into this directory.
     #[arg(long)]
     pub renders: Option<PathBuf>,
     #[arg(long)]
     pub json: bool,
+}
+
+fn load_lpips(
+    path: &Option<PathBuf>,
+    runtime: Option<&std::path::Path>,
+) -> Result<Option<omniscan_splat::lpips::Lpips>> {
+    Ok(match path {
+        Some(p) => Some(omniscan_splat::lpips::Lpips::load(p, runtime)?),
+        None => None,
+    })
 }
 
 /// The views of a capture (one arm, or both merged at the handover), or of a
@@ -268,17 +291,23 @@ pub fn eval(args: EvalArgs) -> Result<()> {
             )?;
         }
     }
-    let report = omniscan_splat::train::evaluate(&model, &views);
+    let lpips = load_lpips(&args.lpips, args.onnx_runtime.as_deref())?;
+    let report = omniscan_splat::train::evaluate(&model, &views, lpips.as_ref())?;
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
         println!(
-            "{} views: PSNR {:.2} dB, SSIM {:.4}; masked PSNR {:.2} dB, masked SSIM {:.4}; LPIPS not computed (no weights given)",
+            "{} views: PSNR {:.2} dB, SSIM {:.4}; masked PSNR {:.2} dB, masked SSIM {:.4}; {}",
             report["views"],
             report["psnr"].as_f64().unwrap_or(f64::NAN),
             report["ssim"].as_f64().unwrap_or(f64::NAN),
             report["psnr_masked"].as_f64().unwrap_or(f64::NAN),
-            report["ssim_masked"].as_f64().unwrap_or(f64::NAN)
+            report["ssim_masked"].as_f64().unwrap_or(f64::NAN),
+            match (report["lpips"].as_f64(), report["lpips_masked"].as_f64()) {
+                (Some(l), Some(m)) => format!("LPIPS {l:.4}, masked LPIPS {m:.4}"),
+                (Some(l), None) => format!("LPIPS {l:.4}"),
+                _ => "LPIPS not computed (no network given: --lpips FILE.onnx)".into(),
+            }
         );
     }
     Ok(())
@@ -320,6 +349,6 @@ pub fn train_merged(
     bar.finish_and_clear();
     write_splats(out, &model)?;
     Ok(
-        json!({ "model": out, "splats": model.len(), "steps": steps, "test": omniscan_splat::train::evaluate(&model, &test_views) }),
+        json!({ "model": out, "splats": model.len(), "steps": steps, "test": omniscan_splat::train::evaluate(&model, &test_views, None)? }),
     )
 }

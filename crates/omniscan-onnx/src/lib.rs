@@ -1,5 +1,6 @@
-//! Running learned models from ONNX files (the paper's Depth Anything V2,
-//! SAM and RAFT roles, and our gripper U-Net when exported).
+//! Running learned models from ONNX files: the masking stage's Depth
+//! Anything V2, SAM and RAFT roles and our exported gripper U-Net, and the
+//! evaluation's LPIPS network.
 //!
 //! Runtime choice: **ONNX Runtime through the `ort` crate, loaded at run
 //! time** (`ort` 2.0.0-rc.15 with `default-features = false` and
@@ -30,12 +31,30 @@ use std::sync::{Mutex, OnceLock};
 use ort::session::Session;
 use ort::value::Tensor as OrtTensor;
 
-use crate::{MaskError, Result};
+/// Errors of loading and running ONNX models.
+#[derive(Debug, thiserror::Error)]
+pub enum OnnxError {
+    #[error("{path}: {message}")]
+    File { path: PathBuf, message: String },
+    #[error("{0}")]
+    Invalid(String),
+}
+
+impl OnnxError {
+    pub fn file(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
+        OnnxError::File {
+            path: path.into(),
+            message: message.into(),
+        }
+    }
+}
+
+pub type Result<T, E = OnnxError> = std::result::Result<T, E>;
 
 /// Environment variable naming the ONNX Runtime library.
 pub const RUNTIME_VARIABLE: &str = "ORT_DYLIB_PATH";
 
-const HOW_TO_GET: &str = "learned (ONNX) backends need ONNX Runtime's shared library, version 1.24 or newer: \
+const HOW_TO_GET: &str = "ONNX models (learned masking backends, LPIPS) need ONNX Runtime's shared library, version 1.24 or newer: \
 `pip install onnxruntime`, then pass its `onnxruntime/capi/libonnxruntime.so.*` with --onnx-runtime or set ORT_DYLIB_PATH";
 
 static ENVIRONMENT: OnceLock<
@@ -54,7 +73,7 @@ pub fn find_runtime(explicit: Option<&Path>) -> Result<PathBuf> {
     if let Some(path) = python_runtime() {
         return Ok(path);
     }
-    Err(MaskError::Invalid(format!(
+    Err(OnnxError::Invalid(format!(
         "no ONNX Runtime library found. {HOW_TO_GET}"
     )))
 }
@@ -63,7 +82,7 @@ fn existing(path: &Path, what: &str) -> Result<PathBuf> {
     if path.is_file() {
         Ok(path.to_path_buf())
     } else {
-        Err(MaskError::file(
+        Err(OnnxError::file(
             path,
             format!("no such file (the ONNX Runtime library, from {what}). {HOW_TO_GET}"),
         ))
@@ -116,7 +135,7 @@ fn environment(explicit: Option<&Path>) -> Result<&'static ort::environment::Env
     });
     match loaded {
         Ok((_, env)) => Ok(env),
-        Err(message) => Err(MaskError::Invalid(message.clone())),
+        Err(message) => Err(OnnxError::Invalid(message.clone())),
     }
 }
 
@@ -189,10 +208,10 @@ impl OnnxModel {
     /// Loads `path` with the ONNX Runtime library found by [`find_runtime`].
     pub fn load(path: &Path, runtime: Option<&Path>) -> Result<OnnxModel> {
         if !path.is_file() {
-            return Err(MaskError::file(path, "no such ONNX model file"));
+            return Err(OnnxError::file(path, "no such ONNX model file"));
         }
         let env = environment(runtime)?;
-        let fail = |e: String| MaskError::file(path, format!("not a usable ONNX model: {e}"));
+        let fail = |e: String| OnnxError::file(path, format!("not a usable ONNX model: {e}"));
         let session = Session::builder(env)
             .map_err(|e| fail(e.to_string()))?
             .commit_from_file(path)
@@ -212,7 +231,7 @@ impl OnnxModel {
 
     /// Runs the model; returns every output, converted to f32.
     pub fn run(&self, inputs: Vec<(String, Input)>) -> Result<Vec<Output>> {
-        let fail = |e: String| MaskError::file(&self.path, format!("inference failed: {e}"));
+        let fail = |e: String| OnnxError::file(&self.path, format!("inference failed: {e}"));
         let mut values: Vec<(
             std::borrow::Cow<'static, str>,
             ort::session::SessionInputValue,
@@ -311,39 +330,6 @@ pub fn output_plane_size(output: &Output, planes: usize) -> Option<(usize, usize
     let (h, w) = (output.dims[n - 2], output.dims[n - 1]);
     (h > 0 && w > 0 && output.data.len() == planes * (h * w) as usize)
         .then_some((h as usize, w as usize))
-}
-
-/// A `width`x`height` plane of model output resampled to `to_width`x`to_height`.
-pub fn resampled(
-    data: &[f32],
-    width: usize,
-    height: usize,
-    to_width: usize,
-    to_height: usize,
-) -> crate::Plane<f32> {
-    let small = crate::Plane {
-        width,
-        height,
-        data: data.to_vec(),
-    };
-    if (width, height) == (to_width, to_height) {
-        return small;
-    }
-    let (sx, sy) = (
-        width as f32 / to_width as f32,
-        height as f32 / to_height as f32,
-    );
-    let mut out = Vec::with_capacity(to_width * to_height);
-    for y in 0..to_height {
-        for x in 0..to_width {
-            out.push(small.sample((x as f32 + 0.5) * sx - 0.5, (y as f32 + 0.5) * sy - 0.5));
-        }
-    }
-    crate::Plane {
-        width: to_width,
-        height: to_height,
-        data: out,
-    }
 }
 
 #[cfg(test)]
