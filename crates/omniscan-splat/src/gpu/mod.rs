@@ -55,6 +55,8 @@ pub struct GpuRenderer {
     project: wgpu::ComputePipeline,
     scan_blocks: wgpu::ComputePipeline,
     add_block_offsets: wgpu::ComputePipeline,
+    depth_keys: wgpu::ComputePipeline,
+    gather_counts: wgpu::ComputePipeline,
     emit: wgpu::ComputePipeline,
     radix_histogram: wgpu::ComputePipeline,
     radix_scatter: wgpu::ComputePipeline,
@@ -215,6 +217,8 @@ impl GpuRenderer {
             project: pipeline(&project_module, "main"),
             scan_blocks: pipeline(&scan_module, "scan_blocks"),
             add_block_offsets: pipeline(&scan_module, "add_block_offsets"),
+            depth_keys: pipeline(&sort_module, "depth_keys"),
+            gather_counts: pipeline(&sort_module, "gather_counts"),
             emit: pipeline(&sort_module, "emit"),
             radix_histogram: pipeline(&sort_module, "radix_histogram"),
             radix_scatter: pipeline(&sort_module, "radix_scatter"),
@@ -311,6 +315,94 @@ impl GpuRenderer {
         pass.set_pipeline(pipeline);
         pass.set_bind_group(0, bind_group, &[]);
         pass.dispatch_workgroups(groups.0, groups.1, 1);
+    }
+
+    fn sort_params(
+        &self,
+        len: u32,
+        shift: u32,
+        gaussians: u32,
+        tiles_x: u32,
+        tiles: u32,
+    ) -> SortParams {
+        SortParams {
+            len,
+            shift,
+            blocks: len.div_ceil(GROUP).max(1),
+            gaussians,
+            tiles_x,
+            tiles,
+            _pad: [0; 2],
+        }
+    }
+
+    /// Two sets of (tile, depth, index) buffers of `len` entries, for ping-pong sorting.
+    fn key_sets(&self, len: u64) -> Vec<[wgpu::Buffer; 3]> {
+        (0..2)
+            .map(|_| {
+                [
+                    self.zeroed("tile keys", len),
+                    self.zeroed("depth keys", len),
+                    self.zeroed("indices", len),
+                ]
+            })
+            .collect()
+    }
+
+    /// Records stable radix passes over the first `len` entries of `keys[0]`
+    /// (ping-ponging with `keys[1]`), one per digit position in `shifts`
+    /// (depth bits below 32, tile bits from 32); returns which set holds the result.
+    #[allow(clippy::too_many_arguments)]
+    fn record_radix(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        keys: &[[wgpu::Buffer; 3]],
+        len: u32,
+        shifts: &[u32],
+        gaussians: u32,
+        tiles_x: u32,
+        tiles: u32,
+    ) -> usize {
+        let mut current = 0;
+        if len == 0 {
+            return current;
+        }
+        let blocks = len.div_ceil(GROUP).max(1);
+        let histogram = self.zeroed("radix histogram", 16 * blocks as u64);
+        for &shift in shifts {
+            let pass_params = self.uniform(
+                "radix params",
+                &self.sort_params(len, shift, gaussians, tiles_x, tiles),
+            );
+            let (input, output_keys) = (&keys[current], &keys[1 - current]);
+            let group = self.bind(
+                &self.radix_histogram,
+                &[
+                    (0, &pass_params),
+                    (10, &input[0]),
+                    (11, &input[1]),
+                    (13, &histogram),
+                ],
+            );
+            Self::dispatch(encoder, &self.radix_histogram, &group, grid(blocks));
+            self.record_scan(encoder, &histogram, 16 * blocks);
+            let group = self.bind(
+                &self.radix_scatter,
+                &[
+                    (0, &pass_params),
+                    (10, &input[0]),
+                    (11, &input[1]),
+                    (12, &input[2]),
+                    (13, &histogram),
+                    (14, &output_keys[0]),
+                    (15, &output_keys[1]),
+                    (16, &output_keys[2]),
+                ],
+            );
+            Self::dispatch(encoder, &self.radix_scatter, &group, grid(blocks));
+            current = 1 - current;
+        }
+        current
     }
 
     /// Records an exclusive scan of the first `len` words of `data`, in place.
@@ -468,9 +560,10 @@ impl GpuRenderer {
         let coeff_buffer = self.storage("colour coefficients", &coeffs);
         let projected = self.zeroed("projected", 12 * n as u64);
         let rects = self.zeroed("tile rectangles", 4 * n as u64);
-        let offsets = self.zeroed("tile offsets", n as u64 + 1);
+        let counts = self.zeroed("tile counts", n as u64 + 1);
 
-        // Projection and the offsets of each Gaussian's intersections.
+        // Projection; the Gaussians in depth order; their intersections'
+        // offsets in that order.
         let mut encoder = self.device.create_command_encoder(&Default::default());
         let group = self.bind(
             &self.project,
@@ -483,12 +576,61 @@ impl GpuRenderer {
                 (5, &coeff_buffer),
                 (6, &projected),
                 (7, &rects),
-                (8, &offsets),
+                (8, &counts),
             ],
         );
         Self::dispatch(
             &mut encoder,
             &self.project,
+            &group,
+            grid((n + 1).div_ceil(GROUP)),
+        );
+        let gaussian_keys = self.key_sets(n as u64);
+        let depth_params = self.uniform(
+            "depth key params",
+            &self.sort_params(n, 0, n, tiles_x, tiles),
+        );
+        let group = self.bind(
+            &self.depth_keys,
+            &[
+                (0, &depth_params),
+                (1, &projected),
+                (30, &counts),
+                (31, &gaussian_keys[0][0]),
+                (32, &gaussian_keys[0][1]),
+                (33, &gaussian_keys[0][2]),
+            ],
+        );
+        Self::dispatch(
+            &mut encoder,
+            &self.depth_keys,
+            &group,
+            grid(n.div_ceil(GROUP)),
+        );
+        let depth_shifts: Vec<u32> = (0..8).map(|p| 4 * p).collect();
+        let by_depth = self.record_radix(
+            &mut encoder,
+            &gaussian_keys,
+            n,
+            &depth_shifts,
+            n,
+            tiles_x,
+            tiles,
+        );
+        let depth_order = &gaussian_keys[by_depth][2];
+        let offsets = self.zeroed("tile offsets in depth order", n as u64 + 1);
+        let group = self.bind(
+            &self.gather_counts,
+            &[
+                (0, &depth_params),
+                (30, &counts),
+                (34, depth_order),
+                (35, &offsets),
+            ],
+        );
+        Self::dispatch(
+            &mut encoder,
+            &self.gather_counts,
             &group,
             grid((n + 1).div_ceil(GROUP)),
         );
@@ -501,90 +643,39 @@ impl GpuRenderer {
             total_bytes[3],
         ]);
 
-        // Intersections, sorted by depth and then (stably) by tile.
-        let len = total.max(1) as u64;
-        let mut keys = vec![
-            [
-                self.zeroed("tile keys", len),
-                self.zeroed("depth keys", len),
-                self.zeroed("indices", len),
-            ],
-            [
-                self.zeroed("tile keys", len),
-                self.zeroed("depth keys", len),
-                self.zeroed("indices", len),
-            ],
-        ];
-        let blocks = total.div_ceil(GROUP).max(1);
-        let histogram = self.zeroed("radix histogram", 16 * blocks as u64);
+        // Intersections in depth order, then sorted (stably) by tile.
+        let mut keys = self.key_sets(total as u64);
         let ranges = self.zeroed("tile ranges", 2 * tiles as u64);
         let output = self.zeroed("image", 6 * (width * height) as u64);
         let last_contributor = self.zeroed("last contributors", (width * height) as u64);
         let mut encoder = self.device.create_command_encoder(&Default::default());
-        let params = |shift: u32| SortParams {
-            len: total,
-            shift,
-            blocks,
-            gaussians: n,
-            tiles_x,
-            tiles,
-            _pad: [0; 2],
-        };
-        let emit_params = self.uniform("emit params", &params(0));
+        let emit_params = self.uniform(
+            "emit params",
+            &self.sort_params(total, 0, n, tiles_x, tiles),
+        );
         let group = self.bind(
             &self.emit,
             &[
                 (0, &emit_params),
-                (1, &projected),
                 (2, &rects),
                 (3, &offsets),
                 (4, &keys[0][0]),
                 (5, &keys[0][1]),
                 (6, &keys[0][2]),
+                (34, depth_order),
             ],
         );
         Self::dispatch(&mut encoder, &self.emit, &group, grid(n.div_ceil(GROUP)));
         let tile_bits = 32 - tiles.saturating_sub(1).leading_zeros();
-        let shifts: Vec<u32> = (0..8)
-            .map(|p| 4 * p)
-            .chain((0..tile_bits.div_ceil(4)).map(|p| 32 + 4 * p))
-            .collect();
-        let mut current = 0;
-        if total > 0 {
-            for &shift in &shifts {
-                let pass_params = self.uniform("radix params", &params(shift));
-                let (input, output_keys) = (&keys[current], &keys[1 - current]);
-                let group = self.bind(
-                    &self.radix_histogram,
-                    &[
-                        (0, &pass_params),
-                        (10, &input[0]),
-                        (11, &input[1]),
-                        (13, &histogram),
-                    ],
-                );
-                Self::dispatch(&mut encoder, &self.radix_histogram, &group, grid(blocks));
-                self.record_scan(&mut encoder, &histogram, 16 * blocks);
-                let group = self.bind(
-                    &self.radix_scatter,
-                    &[
-                        (0, &pass_params),
-                        (10, &input[0]),
-                        (11, &input[1]),
-                        (12, &input[2]),
-                        (13, &histogram),
-                        (14, &output_keys[0]),
-                        (15, &output_keys[1]),
-                        (16, &output_keys[2]),
-                    ],
-                );
-                Self::dispatch(&mut encoder, &self.radix_scatter, &group, grid(blocks));
-                current = 1 - current;
-            }
-        }
+        let tile_shifts: Vec<u32> = (0..tile_bits.div_ceil(4)).map(|p| 32 + 4 * p).collect();
+        let current =
+            self.record_radix(&mut encoder, &keys, total, &tile_shifts, n, tiles_x, tiles);
         let sorted = &keys[current];
         encoder.clear_buffer(&ranges, 0, None);
-        let ranges_params = self.uniform("range params", &params(0));
+        let ranges_params = self.uniform(
+            "range params",
+            &self.sort_params(total, 0, n, tiles_x, tiles),
+        );
         let group = self.bind(
             &self.tile_ranges,
             &[(0, &ranges_params), (20, &sorted[0]), (21, &ranges)],
