@@ -24,19 +24,11 @@ use rand_chacha::ChaCha8Rng;
 
 use crate::backend::Renderer;
 use crate::backward::backward;
-use crate::gpu::GpuFrame;
+use crate::gpu::training::{HostState, StepRates};
 use crate::metrics::{ImageView, psnr, weighted_ssim_and_gradient};
 use crate::raster::{Camera, Colors, Gaussians, Settings, project, rasterize};
 use crate::sh::{C0, coefficients};
 use crate::{SplatError, Splats};
-
-/// One step's forward pass, kept for its backward pass (one exists at a
-/// time, so the variants' sizes do not matter).
-#[allow(clippy::large_enum_variant)]
-enum Pass {
-    Cpu(crate::raster::Projected<f32>, crate::raster::Render<f32>),
-    Gpu(GpuFrame),
-}
 
 /// One training image with its masks.
 #[derive(Debug, Clone)]
@@ -280,9 +272,85 @@ fn gaussians_at_degree(s: &Splats, degree: usize) -> Gaussians<f32> {
     g
 }
 
+/// One step's loss on a render and its gradient with respect to the
+/// render's colour and alpha (see the module doc), and the masked PSNR.
+struct StepLoss {
+    loss: f32,
+    d_rgb: Vec<[f32; 3]>,
+    d_alpha: Vec<f32>,
+    psnr: f64,
+}
+
+fn step_loss(
+    view: &View,
+    r: &crate::raster::Render<f32>,
+    background: [f32; 3],
+    config: &TrainConfig,
+) -> StepLoss {
+    let (w, h) = (view.camera.width as usize, view.camera.height as usize);
+    let n_px = w * h;
+    let target: Vec<[f32; 3]> = (0..n_px)
+        .map(|i| {
+            let m = view.object[i];
+            [0, 1, 2].map(|c| view.image[i][c] * m + background[c] * (1.0 - m))
+        })
+        .collect();
+    let weight: Vec<f32> = view.gripper.iter().map(|g| 1.0 - g).collect();
+    let wsum = weight.iter().sum::<f32>().max(1.0);
+    let lam = config.lambda_ssim;
+    let mut d_rgb = vec![[0.0f32; 3]; n_px];
+    let mut d_alpha = vec![0.0f32; n_px];
+    let mut l1 = 0.0f32;
+    let mut lo = 0.0f32;
+    for i in 0..n_px {
+        for c in 0..3 {
+            let d = r.rgb[i][c] - target[i][c];
+            l1 += weight[i] * d.abs() / (3.0 * wsum);
+            d_rgb[i][c] = (1.0 - lam) * weight[i] * d.signum() / (3.0 * wsum);
+        }
+        let da = r.alpha[i] - view.object[i];
+        lo += weight[i] * da.abs() / wsum;
+        d_alpha[i] = config.lambda_opacity * weight[i] * da.signum() / wsum;
+    }
+    let ssim_weights: Vec<f64> = weight
+        .iter()
+        .map(|&x| x as f64 / (3.0 * wsum as f64))
+        .collect();
+    let rendered = ImageView {
+        width: w,
+        height: h,
+        pixels: &r.rgb,
+    };
+    let wanted = ImageView {
+        width: w,
+        height: h,
+        pixels: &target,
+    };
+    let (ssim, d_ssim) = weighted_ssim_and_gradient(&rendered, &wanted, &ssim_weights);
+    for i in 0..n_px {
+        for c in 0..3 {
+            d_rgb[i][c] -= lam * d_ssim[i][c];
+        }
+    }
+    let loss = (1.0 - lam) * l1 + lam * (1.0 - ssim as f32) + config.lambda_opacity * lo;
+    let psnr = psnr(
+        &rendered,
+        &wanted,
+        Some(&view.gripper.iter().map(|&x| x < 0.5).collect::<Vec<_>>()),
+    )
+    .unwrap_or(0.0);
+    StepLoss {
+        loss,
+        d_rgb,
+        d_alpha,
+        psnr,
+    }
+}
+
 /// Trains `splats` on `views`; `progress(step, loss, psnr)` is called every
-/// step. Rendering and its gradients run on `renderer` (the CPU reference or
-/// the GPU kernels); the loss, Adam and densification run on the CPU.
+/// step. On the CPU renderer everything runs on the CPU; on a GPU the
+/// parameters stay on the device, where rendering, gradients and Adam run,
+/// and the loss and densification run on the CPU.
 pub fn train(
     views: &[View],
     s: Splats,
@@ -412,6 +480,13 @@ pub fn train_resumable(
             }
         };
     let k = s.sh_coefficients();
+    // On a GPU the parameters, moments and statistics live on the device.
+    let mut device_state = match renderer {
+        Renderer::Gpu(gpu) => {
+            Some(gpu.upload_state(&host_state(&s, &adam, &grad2d_sum, &grad2d_count))?)
+        }
+        Renderer::Cpu => None,
+    };
     for step in first_step..=config.steps {
         if order.is_empty() {
             order = (0..views.len()).collect();
@@ -423,7 +498,6 @@ pub fn train_resumable(
         let degree = (step / config.sh_interval.max(1))
             .min(config.max_sh_degree)
             .min(s.sh_degree);
-        let g = gaussians_at_degree(&s, degree);
         let background = [
             rng.random::<f32>(),
             rng.random::<f32>(),
@@ -434,152 +508,118 @@ pub fn train_resumable(
             mode: s.render_mode(),
             background,
         };
-        let pass = match renderer {
-            Renderer::Cpu => {
-                let p = project(&g, &view.camera, &settings);
-                let r = rasterize(&p, view.camera.width, view.camera.height, background);
-                Pass::Cpu(p, r)
-            }
-            Renderer::Gpu(gpu) => Pass::Gpu(gpu.forward(&g, &view.camera, &settings)?),
-        };
-        let r = match &pass {
-            Pass::Cpu(_, r) => r,
-            Pass::Gpu(frame) => &frame.render,
-        };
-        let (w, h) = (view.camera.width as usize, view.camera.height as usize);
-        let n_px = w * h;
-        let target: Vec<[f32; 3]> = (0..n_px)
-            .map(|i| {
-                let m = view.object[i];
-                [0, 1, 2].map(|c| view.image[i][c] * m + background[c] * (1.0 - m))
-            })
-            .collect();
-        let weight: Vec<f32> = view.gripper.iter().map(|g| 1.0 - g).collect();
-        let wsum = weight.iter().sum::<f32>().max(1.0);
-        let lam = config.lambda_ssim;
-        let mut d_rgb = vec![[0.0f32; 3]; n_px];
-        let mut d_alpha = vec![0.0f32; n_px];
-        let mut l1 = 0.0f32;
-        let mut lo = 0.0f32;
-        for i in 0..n_px {
-            for c in 0..3 {
-                let d = r.rgb[i][c] - target[i][c];
-                l1 += weight[i] * d.abs() / (3.0 * wsum);
-                d_rgb[i][c] = (1.0 - lam) * weight[i] * d.signum() / (3.0 * wsum);
-            }
-            let da = r.alpha[i] - view.object[i];
-            lo += weight[i] * da.abs() / wsum;
-            d_alpha[i] = config.lambda_opacity * weight[i] * da.signum() / wsum;
-        }
-        let ssim_weights: Vec<f64> = weight
-            .iter()
-            .map(|&x| x as f64 / (3.0 * wsum as f64))
-            .collect();
-        let rendered = ImageView {
-            width: w,
-            height: h,
-            pixels: &r.rgb,
-        };
-        let wanted = ImageView {
-            width: w,
-            height: h,
-            pixels: &target,
-        };
-        let (ssim, d_ssim) = weighted_ssim_and_gradient(&rendered, &wanted, &ssim_weights);
-        for i in 0..n_px {
-            for c in 0..3 {
-                d_rgb[i][c] -= lam * d_ssim[i][c];
-            }
-        }
-        let loss = (1.0 - lam) * l1 + lam * (1.0 - ssim as f32) + config.lambda_opacity * lo;
-        let (grads, visible) = match (&pass, renderer) {
-            (Pass::Cpu(p, _), _) => (
-                backward(&g, &view.camera, &settings, p, &d_rgb, &d_alpha),
-                (0..s.len()).map(|i| p.visible(i)).collect::<Vec<bool>>(),
-            ),
-            (Pass::Gpu(frame), Renderer::Gpu(gpu)) => gpu.backward(frame, &d_rgb, &d_alpha)?,
-            (Pass::Gpu(_), Renderer::Cpu) => {
-                return Err(SplatError::Invalid(
-                    "internal error: a GPU frame without a GPU".into(),
-                ));
-            }
-        };
-        // Screen-space gradient statistics for densification (gsplat scales by half the image size).
-        for i in 0..s.len() {
-            if visible[i] {
-                let gx = grads.means2d[i][0] * w as f32 * 0.5;
-                let gy = grads.means2d[i][1] * h as f32 * 0.5;
-                grad2d_sum[i] += (gx * gx + gy * gy).sqrt();
-                grad2d_count[i] += 1;
-            }
-        }
-        // Adam steps.
         let t = step as i32;
         let progress_fraction = step as f32 / config.steps as f32;
         let means_lr = 1.6e-4 * extent * 0.01f32.powf(progress_fraction);
-        let mut means = flat3(&s.means);
-        adam[0].step(&mut means, &flat3(&grads.means), means_lr, t);
-        let mut log_scales = flat3(&s.log_scales);
-        adam[1].step(&mut log_scales, &flat3(&grads.log_scales(&g)), 5e-3, t);
-        let mut quats: Vec<f32> = s.quats.iter().flatten().copied().collect();
-        adam[2].step(
-            &mut quats,
-            &grads.quats.iter().flatten().copied().collect::<Vec<_>>(),
-            1e-3,
-            t,
-        );
-        adam[3].step(&mut s.opacity_logits, &grads.opacity_logits(&g), 5e-2, t);
-        let ka = coefficients(degree);
-        let mut sh_flat = flat3(&s.sh);
-        let mut sh_grad = vec![0.0f32; sh_flat.len()];
-        for i in 0..s.len() {
-            for kk in 0..ka {
-                for c in 0..3 {
-                    sh_grad[(i * k + kk) * 3 + c] = grads.colors[i * ka + kk][c];
+        if let (Renderer::Gpu(gpu), Some(device)) = (renderer, device_state.as_ref()) {
+            let frame = gpu.forward_state(device, &view.camera, &settings, degree)?;
+            let result = step_loss(view, &frame.render, background, config);
+            let rates = StepRates {
+                means: means_lr,
+                log_scales: 5e-3,
+                quats: 1e-3,
+                opacities: 5e-2,
+                sh_dc: 2.5e-3,
+                sh_rest: 2.5e-3 / 20.0,
+            };
+            gpu.step_state(device, &frame, &result.d_rgb, &result.d_alpha, &rates, t)?;
+            progress(step, result.loss, result.psnr);
+        } else {
+            let g = gaussians_at_degree(&s, degree);
+            let p = project(&g, &view.camera, &settings);
+            let r = rasterize(&p, view.camera.width, view.camera.height, background);
+            let (w, h) = (view.camera.width as usize, view.camera.height as usize);
+            let StepLoss {
+                loss,
+                d_rgb,
+                d_alpha,
+                psnr: image_psnr,
+            } = step_loss(view, &r, background, config);
+            let grads = backward(&g, &view.camera, &settings, &p, &d_rgb, &d_alpha);
+            let visible: Vec<bool> = (0..s.len()).map(|i| p.visible(i)).collect();
+            // Screen-space gradient statistics for densification (gsplat scales by half the image size).
+            for i in 0..s.len() {
+                if visible[i] {
+                    let gx = grads.means2d[i][0] * w as f32 * 0.5;
+                    let gy = grads.means2d[i][1] * h as f32 * 0.5;
+                    grad2d_sum[i] += (gx * gx + gy * gy).sqrt();
+                    grad2d_count[i] += 1;
                 }
             }
-        }
-        // DC and higher bands use different rates (gsplat: 2.5e-3 and 2.5e-3/20).
-        adam[4].step_with(
-            &mut sh_flat,
-            &sh_grad,
-            |j| {
-                if (j / 3) % k == 0 {
-                    2.5e-3
-                } else {
-                    2.5e-3 / 20.0
+            // Adam steps.
+            let mut means = flat3(&s.means);
+            adam[0].step(&mut means, &flat3(&grads.means), means_lr, t);
+            let mut log_scales = flat3(&s.log_scales);
+            adam[1].step(&mut log_scales, &flat3(&grads.log_scales(&g)), 5e-3, t);
+            let mut quats: Vec<f32> = s.quats.iter().flatten().copied().collect();
+            adam[2].step(
+                &mut quats,
+                &grads.quats.iter().flatten().copied().collect::<Vec<_>>(),
+                1e-3,
+                t,
+            );
+            adam[3].step(&mut s.opacity_logits, &grads.opacity_logits(&g), 5e-2, t);
+            let ka = coefficients(degree);
+            let mut sh_flat = flat3(&s.sh);
+            let mut sh_grad = vec![0.0f32; sh_flat.len()];
+            for i in 0..s.len() {
+                for kk in 0..ka {
+                    for c in 0..3 {
+                        sh_grad[(i * k + kk) * 3 + c] = grads.colors[i * ka + kk][c];
+                    }
                 }
-            },
-            t,
-        );
-        for i in 0..s.len() {
-            s.means[i] = [means[i * 3], means[i * 3 + 1], means[i * 3 + 2]];
-            s.log_scales[i] = [
-                log_scales[i * 3],
-                log_scales[i * 3 + 1],
-                log_scales[i * 3 + 2],
-            ];
-            s.quats[i] = [
-                quats[i * 4],
-                quats[i * 4 + 1],
-                quats[i * 4 + 2],
-                quats[i * 4 + 3],
-            ];
+            }
+            // DC and higher bands use different rates (gsplat: 2.5e-3 and 2.5e-3/20).
+            adam[4].step_with(
+                &mut sh_flat,
+                &sh_grad,
+                |j| {
+                    if (j / 3) % k == 0 {
+                        2.5e-3
+                    } else {
+                        2.5e-3 / 20.0
+                    }
+                },
+                t,
+            );
+            for i in 0..s.len() {
+                s.means[i] = [means[i * 3], means[i * 3 + 1], means[i * 3 + 2]];
+                s.log_scales[i] = [
+                    log_scales[i * 3],
+                    log_scales[i * 3 + 1],
+                    log_scales[i * 3 + 2],
+                ];
+                s.quats[i] = [
+                    quats[i * 4],
+                    quats[i * 4 + 1],
+                    quats[i * 4 + 2],
+                    quats[i * 4 + 3],
+                ];
+            }
+            for (j, v) in sh_flat.chunks_exact(3).enumerate() {
+                s.sh[j] = [v[0], v[1], v[2]];
+            }
+            progress(step, loss, image_psnr);
         }
-        for (j, v) in sh_flat.chunks_exact(3).enumerate() {
-            s.sh[j] = [v[0], v[1], v[2]];
-        }
-        let image_psnr = psnr(
-            &rendered,
-            &wanted,
-            Some(&view.gripper.iter().map(|&x| x < 0.5).collect::<Vec<_>>()),
-        )
-        .unwrap_or(0.0);
-        progress(step, loss, image_psnr);
 
-        // Densify and prune.
+        // Densify and prune (on the host: a resident state comes back first).
         let in_window = step >= config.densify_from && step <= config.densify_until;
-        if in_window && step % config.densify_every == 0 {
+        let densify_now = in_window && step % config.densify_every == 0;
+        let reset_now =
+            config.reset_every > 0 && step % config.reset_every == 0 && step < config.densify_until;
+        let checkpoint_now = checkpoints
+            .as_ref()
+            .is_some_and(|c| c.every > 0 && step % c.every == 0 && step < config.steps);
+        if let (Renderer::Gpu(gpu), Some(device)) = (renderer, device_state.as_ref())
+            && (densify_now || reset_now || checkpoint_now)
+        {
+            let host = gpu.download_state(device)?;
+            s = host.splats;
+            adam = host.moments.map(|(m, v)| Adam { m, v });
+            grad2d_sum = host.grad_sum;
+            grad2d_count = host.grad_count;
+        }
+        if densify_now {
             densify(
                 &mut s,
                 &mut adam,
@@ -592,16 +632,14 @@ pub fn train_resumable(
             grad2d_sum = vec![0.0; s.len()];
             grad2d_count = vec![0; s.len()];
         }
-        if config.reset_every > 0 && step % config.reset_every == 0 && step < config.densify_until {
+        if reset_now {
             let cap = (0.01f32 / 0.99).ln();
             for o in &mut s.opacity_logits {
                 *o = o.min(cap);
             }
         }
         if let Some(c) = checkpoints.as_mut()
-            && c.every > 0
-            && step % c.every == 0
-            && step < config.steps
+            && checkpoint_now
         {
             let state = TrainState {
                 step,
@@ -616,9 +654,27 @@ pub fn train_resumable(
             };
             (c.save)(&state)?;
         }
+        if let (Renderer::Gpu(gpu), Some(_)) = (renderer, device_state.as_ref())
+            && (densify_now || reset_now)
+        {
+            device_state =
+                Some(gpu.upload_state(&host_state(&s, &adam, &grad2d_sum, &grad2d_count))?);
+        }
+    }
+    if let (Renderer::Gpu(gpu), Some(device)) = (renderer, device_state.as_ref()) {
+        s = gpu.download_state(device)?.splats;
     }
     s.validate()?;
     Ok(s)
+}
+
+fn host_state(s: &Splats, adam: &[Adam; 5], sum: &[f32], count: &[u32]) -> HostState {
+    HostState {
+        splats: s.clone(),
+        moments: adam.each_ref().map(|a| (a.m.clone(), a.v.clone())),
+        grad_sum: sum.to_vec(),
+        grad_count: count.to_vec(),
+    }
 }
 
 fn densify(

@@ -19,6 +19,8 @@
 //! operations inside the projection: a Gaussian whose alpha sits within
 //! rounding of 1/255 at a pixel can be kept by one and skipped by the other.
 
+pub mod training;
+
 use std::sync::mpsc;
 
 use wgpu::util::DeviceExt;
@@ -64,13 +66,31 @@ pub struct GpuRenderer {
     rasterize: wgpu::ComputePipeline,
     /// The backward kernels, when the device has subgroup operations.
     backward: Option<(wgpu::ComputePipeline, wgpu::ComputePipeline)>,
+    /// The optimiser's kernels (with the backward ones).
+    optimise: Option<training::OptimiseKernels>,
+}
+
+/// Gaussians on the device, as the kernels read them: activated scales and
+/// opacities, colour coefficients `stride` per Gaussian of which the first
+/// `per_channel` are used (or plain RGB).
+#[derive(Debug, Clone)]
+pub(crate) struct SceneBuffers {
+    pub n: u32,
+    pub per_channel: u32,
+    pub stride: u32,
+    pub plain: bool,
+    pub means: wgpu::Buffer,
+    pub scales: wgpu::Buffer,
+    pub quats: wgpu::Buffer,
+    pub opacities: wgpu::Buffer,
+    pub coeffs: wgpu::Buffer,
 }
 
 /// What the forward pass leaves on the device for the backward pass.
 pub struct GpuFrame {
     pub render: Render<f32>,
     gaussians: u32,
-    sh_per_channel: u32,
+    sh_stride: u32,
     camera: wgpu::Buffer,
     inputs: [wgpu::Buffer; 5],
     projected: wgpu::Buffer,
@@ -208,11 +228,16 @@ impl GpuRenderer {
             let inner = device.push_error_scope(wgpu::ErrorFilter::Validation);
             let raster = pipeline(&module("rasterize backward", RASTERIZE_BACKWARD), "main");
             let project = pipeline(&module("project backward", PROJECT_BACKWARD), "main");
+            let kernels = training::OptimiseKernels::new(&device);
             match pollster::block_on(inner.pop()) {
-                None => backward = Some((raster, project)),
+                None => backward = Some((raster, project, kernels)),
                 Some(e) => tracing::warn!("GPU backend: no backward pass on this device: {e}"),
             }
         }
+        let (backward, optimise) = match backward {
+            Some((raster, project, kernels)) => (Some((raster, project)), Some(kernels)),
+            None => (None, None),
+        };
         let renderer = GpuRenderer {
             project: pipeline(&project_module, "main"),
             scan_blocks: pipeline(&scan_module, "scan_blocks"),
@@ -225,6 +250,7 @@ impl GpuRenderer {
             tile_ranges: pipeline(&sort_module, "tile_ranges"),
             rasterize: pipeline(&raster_module, "main"),
             backward,
+            optimise,
             device,
             queue,
             info,
@@ -489,7 +515,51 @@ impl GpuRenderer {
         camera: &Camera<f32>,
         settings: &Settings<f32>,
     ) -> Result<GpuFrame, SplatError> {
-        let n = gaussians.means.len() as u32;
+        let scene = self.upload(gaussians)?;
+        self.forward_scene(&scene, camera, settings)
+    }
+
+    /// Copies activated Gaussians to the device.
+    fn upload(&self, gaussians: &Gaussians<f32>) -> Result<SceneBuffers, SplatError> {
+        let (coeffs, per_channel, plain): (Vec<f32>, u32, bool) = match &gaussians.colors {
+            Colors::Rgb(c) => (c.iter().flatten().copied().collect(), 1, true),
+            Colors::Sh { degree, coeffs } => (
+                coeffs.iter().flatten().copied().collect(),
+                crate::sh::coefficients(*degree) as u32,
+                false,
+            ),
+        };
+        let flat = |v: &[[f32; 3]]| v.iter().flatten().copied().collect::<Vec<f32>>();
+        Ok(SceneBuffers {
+            n: gaussians.means.len() as u32,
+            per_channel,
+            stride: per_channel,
+            plain,
+            means: self.storage("means", &flat(&gaussians.means)),
+            scales: self.storage("scales", &flat(&gaussians.scales)),
+            quats: self.storage(
+                "quats",
+                &gaussians
+                    .quats
+                    .iter()
+                    .flatten()
+                    .copied()
+                    .collect::<Vec<f32>>(),
+            ),
+            opacities: self.storage("opacities", &gaussians.opacities),
+            coeffs: self.storage("colour coefficients", &coeffs),
+        })
+    }
+
+    /// The forward pass of Gaussians already on the device.
+    fn forward_scene(
+        &self,
+        scene: &SceneBuffers,
+        camera: &Camera<f32>,
+        settings: &Settings<f32>,
+    ) -> Result<GpuFrame, SplatError> {
+        let n = scene.n;
+        let per_channel = scene.per_channel;
         let (width, height) = (camera.width, camera.height);
         if width == 0 || height == 0 {
             return Err(SplatError::Invalid("cannot render an empty image".into()));
@@ -497,15 +567,7 @@ impl GpuRenderer {
         let (tiles_x, tiles_y) = (width.div_ceil(TILE), height.div_ceil(TILE));
         let tiles = tiles_x * tiles_y;
         let view = ViewGeometry::new(camera);
-        let (coeffs, per_channel, plain): (Vec<f32>, u32, u32) = match &gaussians.colors {
-            Colors::Rgb(c) => (c.iter().flatten().copied().collect(), 1, 1),
-            Colors::Sh { degree, coeffs } => (
-                coeffs.iter().flatten().copied().collect(),
-                crate::sh::coefficients(*degree) as u32,
-                0,
-            ),
-        };
-        if per_channel > 16 {
+        if per_channel > 16 || scene.stride < per_channel {
             return Err(SplatError::Invalid(
                 "the GPU backend evaluates SH up to degree 3".into(),
             ));
@@ -540,24 +602,18 @@ impl GpuRenderer {
                 0.0,
             ],
             background,
-            counts: [n, per_channel, plain, tiles_x],
-            counts2: [tiles_y, 0, 0, 0],
+            counts: [n, per_channel, u32::from(scene.plain), tiles_x],
+            counts2: [tiles_y, scene.stride, 0, 0],
         };
-        let flat = |v: &[[f32; 3]]| v.iter().flatten().copied().collect::<Vec<f32>>();
         let camera_buffer = self.uniform("camera", &camera_uniform);
-        let means = self.storage("means", &flat(&gaussians.means));
-        let scales = self.storage("scales", &flat(&gaussians.scales));
-        let quats = self.storage(
-            "quats",
-            &gaussians
-                .quats
-                .iter()
-                .flatten()
-                .copied()
-                .collect::<Vec<f32>>(),
-        );
-        let opacities = self.storage("opacities", &gaussians.opacities);
-        let coeff_buffer = self.storage("colour coefficients", &coeffs);
+        let SceneBuffers {
+            means,
+            scales,
+            quats,
+            opacities,
+            coeffs: coeff_buffer,
+            ..
+        } = scene.clone();
         let projected = self.zeroed("projected", 12 * n as u64);
         let rects = self.zeroed("tile rectangles", 4 * n as u64);
         let counts = self.zeroed("tile counts", n as u64 + 1);
@@ -729,7 +785,7 @@ impl GpuRenderer {
         Ok(GpuFrame {
             render,
             gaussians: n,
-            sh_per_channel: per_channel,
+            sh_stride: scene.stride,
             camera: camera_buffer,
             inputs: [means, scales, quats, opacities, coeff_buffer],
             projected,
@@ -760,12 +816,15 @@ impl GpuRenderer {
         result
     }
 
-    fn backward_inner(
+    /// Records the backward pass of `frame` into a new encoder: the 2D
+    /// gradients (10 per Gaussian) and the parameter gradients (means,
+    /// quaternions, scales, opacities, colour coefficients).
+    pub(crate) fn record_backward(
         &self,
         frame: &GpuFrame,
         d_rgb: &[[f32; 3]],
         d_alpha: &[f32],
-    ) -> Result<(Gradients<f32>, Vec<bool>), SplatError> {
+    ) -> Result<(wgpu::CommandEncoder, wgpu::Buffer, [wgpu::Buffer; 5]), SplatError> {
         let Some((raster_backward, project_backward)) = &self.backward else {
             return Err(SplatError::Invalid(format!(
                 "GPU backend: {} has no subgroup operations, which the backward pass needs; train with --backend cpu",
@@ -781,7 +840,7 @@ impl GpuRenderer {
             )));
         }
         let n = frame.gaussians as u64;
-        let k = frame.sh_per_channel as u64;
+        let k = frame.sh_stride as u64;
         let d_image: Vec<f32> = d_rgb
             .iter()
             .zip(d_alpha)
@@ -837,6 +896,18 @@ impl GpuRenderer {
             &group,
             grid((n as u32).div_ceil(GROUP)),
         );
+        Ok((encoder, grads2d, outputs))
+    }
+
+    fn backward_inner(
+        &self,
+        frame: &GpuFrame,
+        d_rgb: &[[f32; 3]],
+        d_alpha: &[f32],
+    ) -> Result<(Gradients<f32>, Vec<bool>), SplatError> {
+        let (mut encoder, grads2d, outputs) = self.record_backward(frame, d_rgb, d_alpha)?;
+        let n = frame.gaussians as u64;
+        let k = frame.sh_stride as u64;
         // One read-back of everything: the 2D gradients, then each output.
         let sizes = [10 * n, 3 * n, 4 * n, 3 * n, n, 3 * k * n];
         let total: u64 = sizes.iter().sum();

@@ -15,7 +15,7 @@ struct Camera {
     footprint: vec4<f32>,   // eps2d, antialiased (0/1)
     background: vec4<f32>,
     counts: vec4<u32>,      // gaussians, SH coefficients per channel, plain RGB (0/1), tiles in x
-    counts2: vec4<u32>,     // tiles in y
+    counts2: vec4<u32>,     // tiles in y, colour coefficients stored per Gaussian
 }
 
 @group(0) @binding(0) var<uniform> cam: Camera;
@@ -41,7 +41,7 @@ const C1: f32 = 0.4886025119029199;
 
 fn sh_colour(g: u32, dir: vec3<f32>) -> vec3<f32> {
     let k = cam.counts.y;
-    let base = g * k * 3u;
+    let base = g * cam.counts2.y * 3u;
     var b: array<f32, 16>;
     b[0] = C0;
     let x = dir.x;

@@ -71,7 +71,8 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         return;
     }
     let k = cam.counts.y;
-    zero_outputs(g, k);
+    let stride = cam.counts2.y;
+    zero_outputs(g, stride);
     let b9 = 10u * g;
     let visible = projected[12u * g + 10u] > 0.5;
     grads2d[b9 + 9u] = select(0.0, 1.0, visible);
@@ -164,7 +165,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
             db[14] = vec3<f32>(2.0 * C3_5 * dx * dz, -2.0 * C3_5 * dy * dz, C3_5 * (xx - yy));
             db[15] = vec3<f32>(C3_6 * (3.0 * xx - 3.0 * yy), -6.0 * C3_6 * dx * dy, 0.0);
         }
-        let base = 3u * k * g;
+        let base = 3u * stride * g;
         var raw = vec3<f32>(0.0);
         for (var i = 0u; i < k; i++) {
             raw += b[i] * vec3<f32>(coeffs[base + 3u * i], coeffs[base + 3u * i + 1u], coeffs[base + 3u * i + 2u]);

@@ -1,0 +1,368 @@
+//! Training with the parameters resident on the device: the splats, Adam's
+//! moments and the densification statistics live in GPU buffers; each step
+//! renders (`forward`), reads back the image for the loss (computed on the
+//! CPU, as the CPU trainer does), sends its gradient, and runs the backward
+//! pass, the statistics and the Adam steps on the device (`optimise.wgsl`).
+//! Everything comes back to the host only where the CPU trainer's logic needs
+//! it: densification, opacity resets, checkpoints and the end.
+
+use super::{GROUP, GpuFrame, GpuRenderer, SceneBuffers, gpu_error, grid};
+use crate::SplatError;
+use crate::raster::{Camera, Settings};
+use crate::{Splats, sh};
+
+const OPTIMISE: &str = include_str!("optimise.wgsl");
+
+/// The optimiser's kernels.
+pub(crate) struct OptimiseKernels {
+    activate: wgpu::ComputePipeline,
+    statistics: wgpu::ComputePipeline,
+    adam: wgpu::ComputePipeline,
+}
+
+impl OptimiseKernels {
+    pub(crate) fn new(device: &wgpu::Device) -> OptimiseKernels {
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("optimise"),
+            source: wgpu::ShaderSource::Wgsl(OPTIMISE.into()),
+        });
+        let pipeline = |entry: &str| {
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry),
+                layout: None,
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+        };
+        OptimiseKernels {
+            activate: pipeline("activate"),
+            statistics: pipeline("statistics"),
+            adam: pipeline("adam"),
+        }
+    }
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct OptimiseParams {
+    len: u32,
+    kind: u32,
+    stride: u32,
+    _pad: u32,
+    lr: f32,
+    lr_rest: f32,
+    bias1: f32,
+    bias2: f32,
+    half_width: f32,
+    half_height: f32,
+    beta1: f32,
+    beta2: f32,
+    one_minus_beta1: f32,
+    one_minus_beta2: f32,
+    epsilon: f32,
+    _pad2: f32,
+}
+
+/// The trainer's state as the CPU holds it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HostState {
+    pub splats: Splats,
+    /// Adam's first and second moments of means, log-scales, quaternions,
+    /// opacity logits and SH coefficients.
+    pub moments: [(Vec<f32>, Vec<f32>); 5],
+    pub grad_sum: Vec<f32>,
+    pub grad_count: Vec<u32>,
+}
+
+/// The same state on the device.
+pub struct DeviceState {
+    n: u32,
+    stride: u32,
+    sh_degree: usize,
+    antialiased: bool,
+    /// Means, log-scales, quaternions, opacity logits, SH coefficients.
+    values: [wgpu::Buffer; 5],
+    first: [wgpu::Buffer; 5],
+    second: [wgpu::Buffer; 5],
+    scales: wgpu::Buffer,
+    opacities: wgpu::Buffer,
+    grad_sum: wgpu::Buffer,
+    grad_count: wgpu::Buffer,
+}
+
+/// Learning rates of one step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepRates {
+    pub means: f32,
+    pub log_scales: f32,
+    pub quats: f32,
+    pub opacities: f32,
+    pub sh_dc: f32,
+    pub sh_rest: f32,
+}
+
+fn flat<const K: usize>(v: &[[f32; K]]) -> Vec<f32> {
+    v.iter().flatten().copied().collect()
+}
+
+impl GpuRenderer {
+    fn optimise(&self) -> Result<&OptimiseKernels, SplatError> {
+        match (&self.optimise, &self.backward) {
+            (Some(k), Some(_)) => Ok(k),
+            _ => Err(SplatError::Invalid(format!(
+                "GPU backend: {} cannot run the backward pass (no subgroup operations); train with --backend cpu",
+                self.adapter()
+            ))),
+        }
+    }
+
+    /// Copies the trainer's state to the device.
+    pub fn upload_state(&self, host: &HostState) -> Result<DeviceState, SplatError> {
+        self.optimise()?;
+        let s = &host.splats;
+        let n = s.len() as u32;
+        let stride = s.sh_coefficients() as u32;
+        let values = [
+            self.storage("means", &flat(&s.means)),
+            self.storage("log-scales", &flat(&s.log_scales)),
+            self.storage("quaternions", &flat(&s.quats)),
+            self.storage("opacity logits", &s.opacity_logits),
+            self.storage("SH coefficients", &flat(&s.sh)),
+        ];
+        let first = host
+            .moments
+            .each_ref()
+            .map(|(m, _)| self.storage("Adam first moments", m));
+        let second = host
+            .moments
+            .each_ref()
+            .map(|(_, v)| self.storage("Adam second moments", v));
+        Ok(DeviceState {
+            n,
+            stride,
+            sh_degree: s.sh_degree,
+            antialiased: s.antialiased,
+            values,
+            first,
+            second,
+            scales: self.zeroed("scales", 3 * n as u64),
+            opacities: self.zeroed("opacities", n as u64),
+            grad_sum: self.storage("gradient sums", &host.grad_sum),
+            grad_count: self.storage("gradient counts", &host.grad_count),
+        })
+    }
+
+    /// Reads the trainer's state back from the device.
+    pub fn download_state(&self, device: &DeviceState) -> Result<HostState, SplatError> {
+        let n = device.n as u64;
+        let k = device.stride as u64;
+        let sizes = [3 * n, 3 * n, 4 * n, n, 3 * k * n];
+        let mut buffers: Vec<(&wgpu::Buffer, u64)> = Vec::new();
+        for (g, &size) in sizes.iter().enumerate() {
+            buffers.push((&device.values[g], size));
+        }
+        for (g, &size) in sizes.iter().enumerate() {
+            buffers.push((&device.first[g], size));
+            buffers.push((&device.second[g], size));
+        }
+        buffers.push((&device.grad_sum, n));
+        buffers.push((&device.grad_count, n));
+        let total: u64 = buffers.iter().map(|b| b.1).sum();
+        let gathered = self.zeroed("state", total);
+        let mut encoder = self.device.create_command_encoder(&Default::default());
+        let mut offset = 0;
+        for (buffer, size) in &buffers {
+            if *size > 0 {
+                encoder.copy_buffer_to_buffer(buffer, 0, &gathered, 4 * offset, 4 * size);
+            }
+            offset += size;
+        }
+        let bytes = self.submit_and_read(encoder, &gathered, 4 * total)?;
+        let words: &[u32] = bytemuck::cast_slice(&bytes);
+        let mut parts = Vec::new();
+        let mut at = 0usize;
+        for (_, size) in &buffers {
+            parts.push(&words[at..at + *size as usize]);
+            at += *size as usize;
+        }
+        let floats = |w: &[u32]| w.iter().map(|&b| f32::from_bits(b)).collect::<Vec<f32>>();
+        let triples = |w: &[u32]| {
+            floats(w)
+                .chunks_exact(3)
+                .map(|c| [c[0], c[1], c[2]])
+                .collect::<Vec<_>>()
+        };
+        let splats = Splats {
+            means: triples(parts[0]),
+            log_scales: triples(parts[1]),
+            quats: floats(parts[2])
+                .chunks_exact(4)
+                .map(|c| [c[0], c[1], c[2], c[3]])
+                .collect(),
+            opacity_logits: floats(parts[3]),
+            sh_degree: device.sh_degree,
+            sh: triples(parts[4]),
+            antialiased: device.antialiased,
+        };
+        let moments = [0, 1, 2, 3, 4].map(|g| (floats(parts[5 + 2 * g]), floats(parts[6 + 2 * g])));
+        Ok(HostState {
+            splats,
+            moments,
+            grad_sum: floats(parts[15]),
+            grad_count: parts[16].to_vec(),
+        })
+    }
+
+    /// Renders the device state with its first `degree` SH bands.
+    pub fn forward_state(
+        &self,
+        state: &DeviceState,
+        camera: &Camera<f32>,
+        settings: &Settings<f32>,
+        degree: usize,
+    ) -> Result<GpuFrame, SplatError> {
+        let kernels = self.optimise()?;
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let params = self.uniform(
+            "activation params",
+            &OptimiseParams {
+                len: state.n,
+                ..bytemuck::Zeroable::zeroed()
+            },
+        );
+        let mut encoder = self.device.create_command_encoder(&Default::default());
+        let group = self.bind(
+            &kernels.activate,
+            &[
+                (0, &params),
+                (1, &state.values[1]),
+                (2, &state.values[3]),
+                (3, &state.scales),
+                (4, &state.opacities),
+            ],
+        );
+        Self::dispatch(
+            &mut encoder,
+            &kernels.activate,
+            &group,
+            grid(state.n.div_ceil(GROUP)),
+        );
+        self.queue.submit([encoder.finish()]);
+        let scene = SceneBuffers {
+            n: state.n,
+            per_channel: sh::coefficients(degree.min(state.sh_degree)) as u32,
+            stride: state.stride,
+            plain: false,
+            means: state.values[0].clone(),
+            scales: state.scales.clone(),
+            quats: state.values[2].clone(),
+            opacities: state.opacities.clone(),
+            coeffs: state.values[4].clone(),
+        };
+        let result = self.forward_scene(&scene, camera, settings);
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(gpu_error("rendering failed", e));
+        }
+        result
+    }
+
+    /// The backward pass of `frame` (rendered from `state`), the
+    /// densification statistics and one Adam step (number `t`) of every
+    /// parameter group, all on the device.
+    pub fn step_state(
+        &self,
+        state: &DeviceState,
+        frame: &GpuFrame,
+        d_rgb: &[[f32; 3]],
+        d_alpha: &[f32],
+        rates: &StepRates,
+        t: i32,
+    ) -> Result<(), SplatError> {
+        let kernels = self.optimise()?;
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let (mut encoder, grads2d, outputs) = self.record_backward(frame, d_rgb, d_alpha)?;
+        let (b1, b2) = (0.9f32, 0.999f32);
+        let base = OptimiseParams {
+            len: state.n,
+            kind: 0,
+            stride: state.stride,
+            _pad: 0,
+            lr: 0.0,
+            lr_rest: 0.0,
+            bias1: 1.0 - b1.powi(t),
+            bias2: 1.0 - b2.powi(t),
+            half_width: frame.render.width as f32 * 0.5,
+            half_height: frame.render.height as f32 * 0.5,
+            beta1: b1,
+            beta2: b2,
+            one_minus_beta1: 1.0 - b1,
+            one_minus_beta2: 1.0 - b2,
+            epsilon: 1e-15,
+            _pad2: 0.0,
+        };
+        let stats_params = self.uniform("statistics params", &base);
+        let group = self.bind(
+            &kernels.statistics,
+            &[
+                (0, &stats_params),
+                (5, &grads2d),
+                (6, &state.grad_sum),
+                (7, &state.grad_count),
+            ],
+        );
+        Self::dispatch(
+            &mut encoder,
+            &kernels.statistics,
+            &group,
+            grid(state.n.div_ceil(GROUP)),
+        );
+        // Groups: (values, gradient output, length, kind, rates).
+        let n = state.n;
+        let k = state.stride;
+        let groups = [
+            (0, &outputs[0], 3 * n, 0, rates.means, rates.means),
+            (1, &outputs[2], 3 * n, 1, rates.log_scales, rates.log_scales),
+            (2, &outputs[1], 4 * n, 0, rates.quats, rates.quats),
+            (3, &outputs[3], n, 2, rates.opacities, rates.opacities),
+            (4, &outputs[4], 3 * k * n, 3, rates.sh_dc, rates.sh_rest),
+        ];
+        for (g, gradient, len, kind, lr, lr_rest) in groups {
+            if len == 0 {
+                continue;
+            }
+            let params = self.uniform(
+                "Adam params",
+                &OptimiseParams {
+                    len,
+                    kind,
+                    lr,
+                    lr_rest,
+                    ..base
+                },
+            );
+            let group = self.bind(
+                &kernels.adam,
+                &[
+                    (0, &params),
+                    (8, &state.values[g]),
+                    (9, gradient),
+                    (10, &state.first[g]),
+                    (11, &state.second[g]),
+                ],
+            );
+            Self::dispatch(
+                &mut encoder,
+                &kernels.adam,
+                &group,
+                grid(len.div_ceil(GROUP)),
+            );
+        }
+        self.queue.submit([encoder.finish()]);
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(gpu_error("the training step failed", e));
+        }
+        Ok(())
+    }
+}
