@@ -24,7 +24,7 @@ use rand_chacha::ChaCha8Rng;
 
 use crate::backend::Renderer;
 use crate::backward::backward;
-use crate::gpu::training::{HostState, StepRates};
+use crate::gpu::training::{HostState, LossTarget, StepRates};
 use crate::metrics::{ImageView, psnr, weighted_ssim_and_gradient};
 use crate::raster::{Camera, Colors, Gaussians, Settings, project, rasterize};
 use crate::sh::{C0, coefficients};
@@ -512,8 +512,7 @@ pub fn train_resumable(
         let progress_fraction = step as f32 / config.steps as f32;
         let means_lr = 1.6e-4 * extent * 0.01f32.powf(progress_fraction);
         if let (Renderer::Gpu(gpu), Some(device)) = (renderer, device_state.as_ref()) {
-            let frame = gpu.forward_state(device, &view.camera, &settings, degree)?;
-            let result = step_loss(view, &frame.render, background, config);
+            let frame = gpu.forward_state(device, &view.camera, &settings, degree, false)?;
             let rates = StepRates {
                 means: means_lr,
                 log_scales: 5e-3,
@@ -522,8 +521,16 @@ pub fn train_resumable(
                 sh_dc: 2.5e-3,
                 sh_rest: 2.5e-3 / 20.0,
             };
-            gpu.step_state(device, &frame, &result.d_rgb, &result.d_alpha, &rates, t)?;
-            progress(step, result.loss, result.psnr);
+            let target = LossTarget {
+                image: &view.image,
+                object: &view.object,
+                gripper: &view.gripper,
+                background,
+                lambda_ssim: config.lambda_ssim,
+                lambda_opacity: config.lambda_opacity,
+            };
+            let report = gpu.train_step(device, &frame, &target, &rates, t)?;
+            progress(step, report.loss, report.psnr);
         } else {
             let g = gaussians_at_degree(&s, degree);
             let p = project(&g, &view.camera, &settings);

@@ -453,7 +453,7 @@ impl GpuRenderer {
         encoder: wgpu::CommandEncoder,
         source: &wgpu::Buffer,
         bytes: u64,
-    ) -> Result<Vec<u8>, SplatError> {
+    ) -> Result<Vec<u32>, SplatError> {
         let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("readback"),
             size: bytes.max(4),
@@ -474,13 +474,17 @@ impl GpuRenderer {
             .recv()
             .map_err(|e| gpu_error("reading results back", e))?
             .map_err(|e| gpu_error("reading results back", e))?;
-        let data = staging
+        // Words, not a cast of the bytes: a byte vector need not be aligned for u32.
+        let words = staging
             .slice(..)
             .get_mapped_range()
             .map_err(|e| gpu_error("reading results back", e))?
-            .to_vec();
+            .chunks_exact(4)
+            .take((bytes / 4) as usize)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
         staging.unmap();
-        Ok(data[..bytes as usize].to_vec())
+        Ok(words)
     }
 
     /// Renders `gaussians` through `camera`: the same outputs as
@@ -516,7 +520,7 @@ impl GpuRenderer {
         settings: &Settings<f32>,
     ) -> Result<GpuFrame, SplatError> {
         let scene = self.upload(gaussians)?;
-        self.forward_scene(&scene, camera, settings)
+        self.forward_scene(&scene, camera, settings, true)
     }
 
     /// Copies activated Gaussians to the device.
@@ -552,11 +556,14 @@ impl GpuRenderer {
     }
 
     /// The forward pass of Gaussians already on the device.
+    /// The forward pass of Gaussians already on the device; the image comes
+    /// back to the host only when `read_back` (else `render` has no pixels).
     fn forward_scene(
         &self,
         scene: &SceneBuffers,
         camera: &Camera<f32>,
         settings: &Settings<f32>,
+        read_back: bool,
     ) -> Result<GpuFrame, SplatError> {
         let n = scene.n;
         let per_channel = scene.per_channel;
@@ -691,13 +698,7 @@ impl GpuRenderer {
             grid((n + 1).div_ceil(GROUP)),
         );
         self.record_scan(&mut encoder, &offsets, n + 1);
-        let total_bytes = self.submit_and_read_at(encoder, &offsets, n as u64)?;
-        let total = u32::from_le_bytes([
-            total_bytes[0],
-            total_bytes[1],
-            total_bytes[2],
-            total_bytes[3],
-        ]);
+        let total = self.submit_and_read_at(encoder, &offsets, n as u64)?[0];
 
         // Intersections in depth order, then sorted (stably) by tile.
         let mut keys = self.key_sets(total as u64);
@@ -764,9 +765,14 @@ impl GpuRenderer {
             ],
         );
         Self::dispatch(&mut encoder, &self.rasterize, &group, (tiles_x, tiles_y));
-        let bytes = self.submit_and_read(encoder, &output, 4 * 6 * (width * height) as u64)?;
-        let values: &[f32] = bytemuck::cast_slice(&bytes);
-        let pixels = (width * height) as usize;
+        let bytes = if read_back {
+            self.submit_and_read(encoder, &output, 4 * 6 * (width * height) as u64)?
+        } else {
+            self.queue.submit([encoder.finish()]);
+            Vec::new()
+        };
+        let values: Vec<f32> = bytes.iter().map(|&w| f32::from_bits(w)).collect();
+        let pixels = values.len() / 6;
         let mut render = Render {
             width,
             height,
@@ -825,12 +831,6 @@ impl GpuRenderer {
         d_rgb: &[[f32; 3]],
         d_alpha: &[f32],
     ) -> Result<(wgpu::CommandEncoder, wgpu::Buffer, [wgpu::Buffer; 5]), SplatError> {
-        let Some((raster_backward, project_backward)) = &self.backward else {
-            return Err(SplatError::Invalid(format!(
-                "GPU backend: {} has no subgroup operations, which the backward pass needs; train with --backend cpu",
-                self.adapter()
-            )));
-        };
         let pixels = (frame.render.width * frame.render.height) as usize;
         if d_rgb.len() != pixels || d_alpha.len() != pixels {
             return Err(SplatError::Invalid(format!(
@@ -839,14 +839,35 @@ impl GpuRenderer {
                 d_alpha.len()
             )));
         }
-        let n = frame.gaussians as u64;
-        let k = frame.sh_stride as u64;
         let d_image: Vec<f32> = d_rgb
             .iter()
             .zip(d_alpha)
             .flat_map(|(c, a)| [c[0], c[1], c[2], *a])
             .collect();
         let d_image = self.storage("image gradients", &d_image);
+        let mut encoder = self.device.create_command_encoder(&Default::default());
+        let (grads2d, outputs) = self.record_backward_from(&mut encoder, frame, &d_image)?;
+        Ok((encoder, grads2d, outputs))
+    }
+
+    /// Records the backward pass of `frame` given dL/d(rgb, alpha) per pixel
+    /// (4 floats) in `d_image`: the 2D gradients (10 per Gaussian) and the
+    /// parameter gradients (means, quaternions, scales, opacities, colour
+    /// coefficients).
+    pub(crate) fn record_backward_from(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        frame: &GpuFrame,
+        d_image: &wgpu::Buffer,
+    ) -> Result<(wgpu::Buffer, [wgpu::Buffer; 5]), SplatError> {
+        let Some((raster_backward, project_backward)) = &self.backward else {
+            return Err(SplatError::Invalid(format!(
+                "GPU backend: {} has no subgroup operations, which the backward pass needs; train with --backend cpu",
+                self.adapter()
+            )));
+        };
+        let n = frame.gaussians as u64;
+        let k = frame.sh_stride as u64;
         let grads2d = self.zeroed("2D gradients", 10 * n);
         let outputs = [
             self.zeroed("mean gradients", 3 * n),
@@ -855,7 +876,6 @@ impl GpuRenderer {
             self.zeroed("opacity gradients", n),
             self.zeroed("colour gradients", 3 * k * n),
         ];
-        let mut encoder = self.device.create_command_encoder(&Default::default());
         encoder.clear_buffer(&grads2d, 0, None);
         let group = self.bind(
             raster_backward,
@@ -866,11 +886,11 @@ impl GpuRenderer {
                 (3, &frame.ranges),
                 (4, &frame.image),
                 (5, &frame.last_contributor),
-                (6, &d_image),
+                (6, d_image),
                 (7, &grads2d),
             ],
         );
-        Self::dispatch(&mut encoder, raster_backward, &group, frame.tiles);
+        Self::dispatch(encoder, raster_backward, &group, frame.tiles);
         let [means, scales, quats, opacities, coeffs] = &frame.inputs;
         let group = self.bind(
             project_backward,
@@ -891,12 +911,12 @@ impl GpuRenderer {
             ],
         );
         Self::dispatch(
-            &mut encoder,
+            encoder,
             project_backward,
             &group,
             grid((n as u32).div_ceil(GROUP)),
         );
-        Ok((encoder, grads2d, outputs))
+        Ok((grads2d, outputs))
     }
 
     fn backward_inner(
@@ -920,7 +940,7 @@ impl GpuRenderer {
             offset += size;
         }
         let bytes = self.submit_and_read(encoder, &gathered, 4 * total)?;
-        let all: &[f32] = bytemuck::cast_slice(&bytes);
+        let all: Vec<f32> = bytes.iter().map(|&w| f32::from_bits(w)).collect();
         let (g2, rest) = all.split_at((10 * n) as usize);
         let (d_means, rest) = rest.split_at((3 * n) as usize);
         let (d_quats, rest) = rest.split_at((4 * n) as usize);
@@ -955,7 +975,7 @@ impl GpuRenderer {
         mut encoder: wgpu::CommandEncoder,
         source: &wgpu::Buffer,
         index: u64,
-    ) -> Result<Vec<u8>, SplatError> {
+    ) -> Result<Vec<u32>, SplatError> {
         let word = self.zeroed("one word", 1);
         encoder.copy_buffer_to_buffer(source, 4 * index, &word, 0, 4);
         self.submit_and_read(encoder, &word, 4)

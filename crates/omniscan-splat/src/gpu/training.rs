@@ -12,12 +12,17 @@ use crate::raster::{Camera, Settings};
 use crate::{Splats, sh};
 
 const OPTIMISE: &str = include_str!("optimise.wgsl");
+const LOSS: &str = include_str!("loss.wgsl");
 
-/// The optimiser's kernels.
+/// The optimiser's and the loss's kernels.
 pub(crate) struct OptimiseKernels {
     activate: wgpu::ComputePipeline,
     statistics: wgpu::ComputePipeline,
     adam: wgpu::ComputePipeline,
+    prepare: wgpu::ComputePipeline,
+    blur: wgpu::ComputePipeline,
+    ssim_terms: wgpu::ComputePipeline,
+    gradient: wgpu::ComputePipeline,
 }
 
 impl OptimiseKernels {
@@ -26,20 +31,28 @@ impl OptimiseKernels {
             label: Some("optimise"),
             source: wgpu::ShaderSource::Wgsl(OPTIMISE.into()),
         });
-        let pipeline = |entry: &str| {
+        let loss = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("loss"),
+            source: wgpu::ShaderSource::Wgsl(LOSS.into()),
+        });
+        let pipeline = |module: &wgpu::ShaderModule, entry: &str| {
             device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some(entry),
                 layout: None,
-                module: &module,
+                module,
                 entry_point: Some(entry),
                 compilation_options: Default::default(),
                 cache: None,
             })
         };
         OptimiseKernels {
-            activate: pipeline("activate"),
-            statistics: pipeline("statistics"),
-            adam: pipeline("adam"),
+            activate: pipeline(&module, "activate"),
+            statistics: pipeline(&module, "statistics"),
+            adam: pipeline(&module, "adam"),
+            prepare: pipeline(&loss, "prepare"),
+            blur: pipeline(&loss, "blur"),
+            ssim_terms: pipeline(&loss, "ssim_terms"),
+            gradient: pipeline(&loss, "gradient"),
         }
     }
 }
@@ -63,6 +76,42 @@ struct OptimiseParams {
     one_minus_beta2: f32,
     epsilon: f32,
     _pad2: f32,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct LossParams {
+    width: u32,
+    height: u32,
+    planes: u32,
+    horizontal: u32,
+    background: [f32; 4],
+    lambda_ssim: f32,
+    lambda_opacity: f32,
+    weight_sum: f32,
+    _pad: f32,
+}
+
+/// What the loss of one step compares the render with.
+#[derive(Debug, Clone, Copy)]
+pub struct LossTarget<'a> {
+    /// The photo, RGB 0..1 per pixel.
+    pub image: &'a [[f32; 3]],
+    /// 1 on the object.
+    pub object: &'a [f32],
+    /// 1 on the gripper (excluded from every term).
+    pub gripper: &'a [f32],
+    /// This step's random background colour.
+    pub background: [f32; 3],
+    pub lambda_ssim: f32,
+    pub lambda_opacity: f32,
+}
+
+/// The loss of a step and the PSNR outside the gripper.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepReport {
+    pub loss: f32,
+    pub psnr: f64,
 }
 
 /// The trainer's state as the CPU holds it.
@@ -180,7 +229,7 @@ impl GpuRenderer {
             offset += size;
         }
         let bytes = self.submit_and_read(encoder, &gathered, 4 * total)?;
-        let words: &[u32] = bytemuck::cast_slice(&bytes);
+        let words: &[u32] = &bytes;
         let mut parts = Vec::new();
         let mut at = 0usize;
         for (_, size) in &buffers {
@@ -215,13 +264,15 @@ impl GpuRenderer {
         })
     }
 
-    /// Renders the device state with its first `degree` SH bands.
+    /// Renders the device state with its first `degree` SH bands (the image
+    /// comes back to the host only when `read_back`).
     pub fn forward_state(
         &self,
         state: &DeviceState,
         camera: &Camera<f32>,
         settings: &Settings<f32>,
         degree: usize,
+        read_back: bool,
     ) -> Result<GpuFrame, SplatError> {
         let kernels = self.optimise()?;
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
@@ -261,7 +312,7 @@ impl GpuRenderer {
             opacities: state.opacities.clone(),
             coeffs: state.values[4].clone(),
         };
-        let result = self.forward_scene(&scene, camera, settings);
+        let result = self.forward_scene(&scene, camera, settings, read_back);
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(gpu_error("rendering failed", e));
         }
@@ -280,9 +331,29 @@ impl GpuRenderer {
         rates: &StepRates,
         t: i32,
     ) -> Result<(), SplatError> {
-        let kernels = self.optimise()?;
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let (mut encoder, grads2d, outputs) = self.record_backward(frame, d_rgb, d_alpha)?;
+        self.record_step(&mut encoder, state, frame, &grads2d, &outputs, rates, t)?;
+        self.queue.submit([encoder.finish()]);
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(gpu_error("the training step failed", e));
+        }
+        Ok(())
+    }
+
+    /// Records the densification statistics and the Adam steps of every group.
+    #[allow(clippy::too_many_arguments)]
+    fn record_step(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        state: &DeviceState,
+        frame: &GpuFrame,
+        grads2d: &wgpu::Buffer,
+        outputs: &[wgpu::Buffer; 5],
+        rates: &StepRates,
+        t: i32,
+    ) -> Result<(), SplatError> {
+        let kernels = self.optimise()?;
         let (b1, b2) = (0.9f32, 0.999f32);
         let base = OptimiseParams {
             len: state.n,
@@ -307,13 +378,13 @@ impl GpuRenderer {
             &kernels.statistics,
             &[
                 (0, &stats_params),
-                (5, &grads2d),
+                (5, grads2d),
                 (6, &state.grad_sum),
                 (7, &state.grad_count),
             ],
         );
         Self::dispatch(
-            &mut encoder,
+            encoder,
             &kernels.statistics,
             &group,
             grid(state.n.div_ceil(GROUP)),
@@ -352,17 +423,133 @@ impl GpuRenderer {
                     (11, &state.second[g]),
                 ],
             );
-            Self::dispatch(
-                &mut encoder,
-                &kernels.adam,
-                &group,
-                grid(len.div_ceil(GROUP)),
-            );
+            Self::dispatch(encoder, &kernels.adam, &group, grid(len.div_ceil(GROUP)));
         }
-        self.queue.submit([encoder.finish()]);
+        Ok(())
+    }
+
+    /// A whole training step on the device after [`GpuRenderer::forward_state`]
+    /// (without read-back): the loss against `target` and its gradient, the
+    /// backward pass, the statistics and the Adam steps. Only the loss and
+    /// PSNR come back.
+    pub fn train_step(
+        &self,
+        state: &DeviceState,
+        frame: &GpuFrame,
+        target: &LossTarget,
+        rates: &StepRates,
+        t: i32,
+    ) -> Result<StepReport, SplatError> {
+        let kernels = self.optimise()?;
+        let (width, height) = (frame.render.width, frame.render.height);
+        let n = (width * height) as usize;
+        if target.image.len() != n || target.object.len() != n || target.gripper.len() != n {
+            return Err(SplatError::Invalid(format!(
+                "training step: the view's image and masks do not have {n} pixels"
+            )));
+        }
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let data: Vec<f32> = (0..n)
+            .flat_map(|i| {
+                let c = target.image[i];
+                [c[0], c[1], c[2], target.object[i], target.gripper[i]]
+            })
+            .collect();
+        let target_data = self.storage("loss target", &data);
+        let weight_sum = target.gripper.iter().map(|g| 1.0 - g).sum::<f32>().max(1.0);
+        let params = |planes: u32, horizontal: u32| {
+            self.uniform(
+                "loss params",
+                &LossParams {
+                    width,
+                    height,
+                    planes,
+                    horizontal,
+                    background: [
+                        target.background[0],
+                        target.background[1],
+                        target.background[2],
+                        0.0,
+                    ],
+                    lambda_ssim: target.lambda_ssim,
+                    lambda_opacity: target.lambda_opacity,
+                    weight_sum,
+                    _pad: 0.0,
+                },
+            )
+        };
+        let pixels = n as u64;
+        let sums = self.zeroed("loss sums", 5);
+        let planes = self.zeroed("SSIM planes", 15 * pixels);
+        let scratch = self.zeroed("blur scratch", 15 * pixels);
+        let terms = self.zeroed("SSIM gradient terms", 9 * pixels);
+        let d_image = self.zeroed("image gradients", 4 * pixels);
+        let mut encoder = self.device.create_command_encoder(&Default::default());
+        encoder.clear_buffer(&sums, 0, None);
+        let pixel_groups = grid((n as u32).div_ceil(GROUP));
+        let base = params(15, 0);
+        let group = self.bind(
+            &kernels.prepare,
+            &[
+                (0, &base),
+                (1, &sums),
+                (2, &frame.image),
+                (3, &target_data),
+                (4, &planes),
+            ],
+        );
+        Self::dispatch(&mut encoder, &kernels.prepare, &group, pixel_groups);
+        let blur = |encoder: &mut wgpu::CommandEncoder, data: &wgpu::Buffer, count: u32| {
+            let horizontal = params(count, 1);
+            let vertical = params(count, 0);
+            let groups = grid((n as u32 * count).div_ceil(GROUP));
+            let g = self.bind(&kernels.blur, &[(0, &horizontal), (5, data), (6, &scratch)]);
+            Self::dispatch(encoder, &kernels.blur, &g, groups);
+            let g = self.bind(&kernels.blur, &[(0, &vertical), (5, &scratch), (6, data)]);
+            Self::dispatch(encoder, &kernels.blur, &g, groups);
+        };
+        blur(&mut encoder, &planes, 15);
+        let group = self.bind(
+            &kernels.ssim_terms,
+            &[
+                (0, &base),
+                (1, &sums),
+                (3, &target_data),
+                (7, &planes),
+                (8, &terms),
+            ],
+        );
+        Self::dispatch(&mut encoder, &kernels.ssim_terms, &group, pixel_groups);
+        blur(&mut encoder, &terms, 9);
+        let group = self.bind(
+            &kernels.gradient,
+            &[
+                (0, &base),
+                (2, &frame.image),
+                (3, &target_data),
+                (9, &terms),
+                (10, &d_image),
+            ],
+        );
+        Self::dispatch(&mut encoder, &kernels.gradient, &group, pixel_groups);
+        let (grads2d, outputs) = self.record_backward_from(&mut encoder, frame, &d_image)?;
+        self.record_step(&mut encoder, state, frame, &grads2d, &outputs, rates, t)?;
+        let bytes = self.submit_and_read(encoder, &sums, 20)?;
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(gpu_error("the training step failed", e));
         }
-        Ok(())
+        let s: Vec<f32> = bytes.iter().map(|&w| f32::from_bits(w)).collect();
+        let lam = target.lambda_ssim;
+        let loss = (1.0 - lam) * s[0] / (3.0 * weight_sum)
+            + lam * (1.0 - s[2])
+            + target.lambda_opacity * s[1] / weight_sum;
+        let psnr = if s[4] > 0.0 && s[3] > 0.0 {
+            -10.0 * ((s[3] as f64) / (3.0 * s[4] as f64)).log10()
+        } else if s[4] > 0.0 {
+            f64::INFINITY
+        } else {
+            0.0
+        };
+        Ok(StepReport { loss, psnr })
     }
 }
