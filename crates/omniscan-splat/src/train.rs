@@ -274,14 +274,14 @@ fn gaussians_at_degree(s: &Splats, degree: usize) -> Gaussians<f32> {
 
 /// One step's loss on a render and its gradient with respect to the
 /// render's colour and alpha (see the module doc), and the masked PSNR.
-struct StepLoss {
-    loss: f32,
-    d_rgb: Vec<[f32; 3]>,
-    d_alpha: Vec<f32>,
-    psnr: f64,
+pub struct StepLoss {
+    pub loss: f32,
+    pub d_rgb: Vec<[f32; 3]>,
+    pub d_alpha: Vec<f32>,
+    pub psnr: f64,
 }
 
-fn step_loss(
+pub fn step_loss(
     view: &View,
     r: &crate::raster::Render<f32>,
     background: [f32; 3],

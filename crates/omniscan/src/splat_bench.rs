@@ -70,6 +70,29 @@ fn random_scene(n: usize, seed: u64) -> Gaussians<f32> {
     }
 }
 
+/// Splats whose activated parameters are `g` (the bench's scenes are made activated).
+fn splats_from(g: &Gaussians<f32>) -> omniscan_splat::Splats {
+    let Colors::Sh { degree, coeffs } = &g.colors else {
+        return omniscan_splat::Splats::default();
+    };
+    omniscan_splat::Splats {
+        means: g.means.clone(),
+        log_scales: g.scales.iter().map(|s| s.map(f32::ln)).collect(),
+        quats: g.quats.clone(),
+        opacity_logits: g
+            .opacities
+            .iter()
+            .map(|&o| {
+                let o = o.clamp(1e-4, 1.0 - 1e-4);
+                (o / (1.0 - o)).ln()
+            })
+            .collect(),
+        sh_degree: *degree,
+        sh: coeffs.clone(),
+        antialiased: false,
+    }
+}
+
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
@@ -145,33 +168,103 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             backward(g, camera, &settings, &p, &d_rgb, &d_alpha);
             Ok(())
         })?;
-        let gpu_forward = match &gpu {
-            Some(r) => Some(time(args.repeats, || {
-                r.render(g, camera, &settings)?;
-                Ok(())
-            })?),
-            None => None,
+        // A whole training step against a target (the scene's own render
+        // with its colours shifted): CPU forward, loss, backward; GPU the same
+        // plus Adam, all on the device.
+        let (_, truth) = omniscan_splat::raster::render(g, camera, &settings);
+        let view = omniscan_splat::train::View {
+            camera: *camera,
+            image: truth
+                .rgb
+                .iter()
+                .map(|c| c.map(|v| (v * 0.9 + 0.05).min(1.0)))
+                .collect(),
+            object: truth
+                .alpha
+                .iter()
+                .map(|&a| if a > 0.5 { 1.0 } else { 0.0 })
+                .collect(),
+            gripper: vec![0.0; pixels],
+            depth: Vec::new(),
+        };
+        let config = omniscan_splat::train::TrainConfig::with_steps(1);
+        let cpu_train_step = time(args.repeats, || {
+            let p = project(g, camera, &settings);
+            let r = rasterize(&p, camera.width, camera.height, settings.background);
+            let l = omniscan_splat::train::step_loss(&view, &r, settings.background, &config);
+            backward(g, camera, &settings, &p, &l.d_rgb, &l.d_alpha);
+            Ok(())
+        })?;
+        let (gpu_forward, gpu_train_step) = match &gpu {
+            Some(Renderer::Gpu(device)) => {
+                let forward = time(args.repeats, || {
+                    device.render(g, camera, &settings)?;
+                    Ok(())
+                })?;
+                let splats = splats_from(g);
+                let k = splats.sh_coefficients();
+                let n = splats.len();
+                let host = omniscan_splat::gpu::training::HostState {
+                    moments: [3 * n, 3 * n, 4 * n, n, 3 * k * n]
+                        .map(|len| (vec![0.0; len], vec![0.0; len])),
+                    grad_sum: vec![0.0; n],
+                    grad_count: vec![0; n],
+                    splats,
+                };
+                let state = device.upload_state(&host)?;
+                let rates = omniscan_splat::gpu::training::StepRates {
+                    means: 1e-5,
+                    log_scales: 5e-3,
+                    quats: 1e-3,
+                    opacities: 5e-2,
+                    sh_dc: 2.5e-3,
+                    sh_rest: 1.25e-4,
+                };
+                let target = omniscan_splat::gpu::training::LossTarget {
+                    image: &view.image,
+                    object: &view.object,
+                    gripper: &view.gripper,
+                    background: settings.background,
+                    lambda_ssim: config.lambda_ssim,
+                    lambda_opacity: config.lambda_opacity,
+                };
+                let mut t = 0;
+                let step = time(args.repeats, || {
+                    t += 1;
+                    let frame = device.forward_state(&state, camera, &settings, 3, false)?;
+                    device.train_step(&state, &frame, &target, &rates, t)?;
+                    Ok(())
+                })?;
+                (Some(forward), Some(step))
+            }
+            _ => (None, None),
         };
         let row = json!({
             "scene": name, "gaussians": g.means.len(), "width": camera.width, "height": camera.height,
             "cpu_forward_s": cpu_forward, "cpu_forward_backward_s": cpu_step,
+            "cpu_train_step_s": cpu_train_step,
             "gpu": gpu.as_ref().map(|r| r.describe()),
             "gpu_forward_s": gpu_forward,
             "gpu_forward_speedup": gpu_forward.map(|t| cpu_forward / t),
+            "gpu_train_step_s": gpu_train_step,
+            "gpu_train_step_speedup": gpu_train_step.map(|t| cpu_train_step / t),
         });
         if !args.json {
             println!(
-                "{name:<40} {:>7} Gaussians {}x{}: CPU forward {:.1} ms, CPU forward+backward {:.1} ms{}",
+                "{name:<28} {:>7} Gaussians {}x{}: CPU forward {:.1} ms, forward+backward {:.1} ms, training step {:.1} ms{}",
                 g.means.len(),
                 camera.width,
                 camera.height,
                 1e3 * cpu_forward,
                 1e3 * cpu_step,
-                match (gpu_forward, &gpu) {
-                    (Some(t), Some(r)) => format!(
-                        "; GPU forward {:.1} ms ({:.2}x the CPU; {})",
+                1e3 * cpu_train_step,
+                match (gpu_forward, gpu_train_step, &gpu) {
+                    (Some(f), Some(t), Some(r)) => format!(
+                        "; GPU forward {:.1} ms ({:.2}x the CPU), training step {:.1} ms ({:.2}x; {})",
+                        1e3 * f,
+                        cpu_forward / f,
                         1e3 * t,
-                        cpu_forward / t,
+                        cpu_train_step / t,
                         r.describe()
                     ),
                     _ => "; no GPU timed".into(),
