@@ -245,13 +245,9 @@ impl CandidateProposer for SamProposer {
         region: &Plane<bool>,
         barrier: &Plane<bool>,
     ) -> Result<Segmentation> {
+        crate::segment::check_sizes(image, depth_m, region, barrier)?;
         let (w, h) = (image.width as usize, image.height as usize);
         let n = w * h;
-        if depth_m.len() != n || region.len() != n || barrier.len() != n {
-            return Err(MaskError::Invalid(
-                "segmentation inputs of different sizes".into(),
-            ));
-        }
         let mut labels = Plane::filled(w, h, u32::MAX);
         let mut sizes: Vec<usize> = Vec::new();
         let mut add = |labels: &mut Plane<u32>, pixels: &[usize]| {

@@ -61,6 +61,22 @@ pub trait CandidateProposer: Send + Sync {
     ) -> crate::Result<Segmentation>;
 }
 
+/// Checks that every input of [`CandidateProposer::propose`] covers the image.
+pub(crate) fn check_sizes(
+    image: &RgbImage,
+    depth_m: &Plane<f32>,
+    region: &Plane<bool>,
+    barrier: &Plane<bool>,
+) -> crate::Result<()> {
+    let n = (image.width * image.height) as usize;
+    if depth_m.len() != n || region.len() != n || barrier.len() != n {
+        return Err(crate::MaskError::Invalid(
+            "segmentation inputs of different sizes".into(),
+        ));
+    }
+    Ok(())
+}
+
 /// Felzenszwalb-Huttenlocher segmentation on colour and depth.
 #[derive(Debug, Clone, Default)]
 pub struct GraphSegmenter {
@@ -79,12 +95,7 @@ impl CandidateProposer for GraphSegmenter {
         region: &Plane<bool>,
         barrier: &Plane<bool>,
     ) -> crate::Result<Segmentation> {
-        let n = (image.width * image.height) as usize;
-        if depth_m.len() != n || region.len() != n || barrier.len() != n {
-            return Err(crate::MaskError::Invalid(
-                "segmentation inputs of different sizes".into(),
-            ));
-        }
+        check_sizes(image, depth_m, region, barrier)?;
         Ok(segment(image, depth_m, region, barrier, &self.settings))
     }
 }

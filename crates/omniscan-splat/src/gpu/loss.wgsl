@@ -24,9 +24,6 @@ struct Params {
 
 @group(0) @binding(0) var<uniform> params: Params;
 
-fn pixel_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
-    return gid.x + gid.y * groups.x * 256u;
-}
 
 // Sums: 0 Σw|Δc|, 1 Σw|Δα|, 2 Σ w·SSIM (all channels), 3 Σ squared error
 // outside the gripper, 4 pixels outside the gripper.
@@ -53,13 +50,25 @@ fn add_float(i: u32, v: f32) {
 
 var<workgroup> partial: array<vec4<f32>, 256>;
 
+// Sums `partial` over the workgroup (call from uniform control flow).
+fn workgroup_sum(lid: u32) -> vec4<f32> {
+    workgroupBarrier();
+    for (var stride = 128u; stride > 0u; stride = stride / 2u) {
+        if (lid < stride) {
+            partial[lid] += partial[lid + stride];
+        }
+        workgroupBarrier();
+    }
+    return partial[0];
+}
+
 @compute @workgroup_size(256)
 fn prepare(
     @builtin(global_invocation_id) gid: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let i = pixel_index(gid, groups);
+    let i = flat_index(gid, groups);
     let n = params.width * params.height;
     var mine = vec4<f32>(0.0);
     if (i < n) {
@@ -83,18 +92,12 @@ fn prepare(
         mine.w = select(0.0, 1.0, weight > 0.5);
     }
     partial[lid] = mine;
-    workgroupBarrier();
-    for (var stride = 128u; stride > 0u; stride = stride / 2u) {
-        if (lid < stride) {
-            partial[lid] += partial[lid + stride];
-        }
-        workgroupBarrier();
-    }
+    let total = workgroup_sum(lid);
     if (lid == 0u) {
-        add_float(0u, partial[0].x);
-        add_float(1u, partial[0].y);
-        add_float(3u, partial[0].z);
-        add_float(4u, partial[0].w);
+        add_float(0u, total.x);
+        add_float(1u, total.y);
+        add_float(3u, total.z);
+        add_float(4u, total.w);
     }
 }
 
@@ -155,7 +158,7 @@ fn ssim_terms(
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let i = pixel_index(gid, groups);
+    let i = flat_index(gid, groups);
     let n = params.width * params.height;
     var mine = 0.0;
     if (i < n) {
@@ -181,15 +184,9 @@ fn ssim_terms(
         }
     }
     partial[lid] = vec4<f32>(mine, 0.0, 0.0, 0.0);
-    workgroupBarrier();
-    for (var stride = 128u; stride > 0u; stride = stride / 2u) {
-        if (lid < stride) {
-            partial[lid] += partial[lid + stride];
-        }
-        workgroupBarrier();
-    }
+    let total = workgroup_sum(lid);
     if (lid == 0u) {
-        add_float(2u, partial[0].x);
+        add_float(2u, total.x);
     }
 }
 
@@ -205,7 +202,7 @@ fn signum(v: f32) -> f32 {
 
 @compute @workgroup_size(256)
 fn gradient(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let i = pixel_index(gid, groups);
+    let i = flat_index(gid, groups);
     let n = params.width * params.height;
     if (i >= n) {
         return;

@@ -29,6 +29,7 @@ use crate::SplatError;
 use crate::backward::Gradients;
 use crate::raster::{Camera, Colors, Gaussians, Mode, Render, Settings, TILE, ViewGeometry};
 
+const COMMON: &str = include_str!("common.wgsl");
 const PROJECT: &str = include_str!("project.wgsl");
 const SCAN: &str = include_str!("scan.wgsl");
 const SORT: &str = include_str!("sort.wgsl");
@@ -144,6 +145,30 @@ struct RasterParams {
     background: [f32; 4],
 }
 
+/// A kernel module: `common.wgsl`'s declarations, then `source`.
+fn shader(device: &wgpu::Device, label: &str, source: &str) -> wgpu::ShaderModule {
+    device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some(label),
+        source: wgpu::ShaderSource::Wgsl(format!("{COMMON}\n{source}").into()),
+    })
+}
+
+/// The compute pipeline of `entry` in `module`, its layout derived from the kernel.
+fn compute_pipeline(
+    device: &wgpu::Device,
+    module: &wgpu::ShaderModule,
+    entry: &str,
+) -> wgpu::ComputePipeline {
+    device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some(entry),
+        layout: None,
+        module,
+        entry_point: Some(entry),
+        compilation_options: Default::default(),
+        cache: None,
+    })
+}
+
 fn gpu_error(what: &str, e: impl std::fmt::Display) -> SplatError {
     SplatError::Invalid(format!("GPU backend: {what}: {e}"))
 }
@@ -202,26 +227,13 @@ impl GpuRenderer {
             tracing::error!("GPU backend: {e}");
         }));
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let module = |label: &str, source: &str| {
-            device.create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some(label),
-                source: wgpu::ShaderSource::Wgsl(source.into()),
-            })
-        };
+        let module = |label: &str, source: &str| shader(&device, label, source);
         let project_module = module("project", PROJECT);
         let scan_module = module("scan", SCAN);
         let sort_module = module("sort", SORT);
         let raster_module = module("rasterize", RASTERIZE);
-        let pipeline = |module: &wgpu::ShaderModule, entry: &str| {
-            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(entry),
-                layout: None,
-                module,
-                entry_point: Some(entry),
-                compilation_options: Default::default(),
-                cache: None,
-            })
-        };
+        let pipeline =
+            |module: &wgpu::ShaderModule, entry: &str| compute_pipeline(&device, module, entry);
         let mut backward = None;
         if subgroups {
             // A device that cannot build the backward kernels can still render.

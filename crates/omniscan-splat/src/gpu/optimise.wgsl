@@ -27,9 +27,6 @@ struct Params {
 
 @group(0) @binding(0) var<uniform> params: Params;
 
-fn flat_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
-    return gid.x + gid.y * groups.x * 256u;
-}
 
 // ---- activations: scales = exp(log-scales), opacities = sigmoid(logits) ----
 @group(0) @binding(1) var<storage, read> log_scales: array<f32>;

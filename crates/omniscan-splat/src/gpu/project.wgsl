@@ -4,19 +4,6 @@
 // antialiasing compensation, SH colour towards the camera, and the tile
 // rectangle where the Gaussian can reach alpha >= 1/255.
 
-struct Camera {
-    rot0: vec4<f32>,        // world-to-camera rotation rows; .w = translation
-    rot1: vec4<f32>,
-    rot2: vec4<f32>,
-    campos: vec4<f32>,      // camera centre in world coordinates
-    intrinsics: vec4<f32>,  // fx, fy, cx, cy
-    limits: vec4<f32>,      // x/z clamp (negative side, positive side), y/z clamp
-    size: vec4<f32>,        // width, height, near, far
-    footprint: vec4<f32>,   // eps2d, antialiased (0/1)
-    background: vec4<f32>,
-    counts: vec4<u32>,      // gaussians, SH coefficients per channel, plain RGB (0/1), tiles in x
-    counts2: vec4<u32>,     // tiles in y, colour coefficients stored per Gaussian
-}
 
 @group(0) @binding(0) var<uniform> cam: Camera;
 @group(0) @binding(1) var<storage, read> means: array<f32>;
@@ -32,7 +19,6 @@ struct Camera {
 // Tiles touched per Gaussian; one extra entry (0) so its exclusive scan ends in the total.
 @group(0) @binding(8) var<storage, read_write> tile_counts: array<u32>;
 
-const ALPHA_MIN: f32 = 0.00392156862745098; // 1/255
 const RADIUS_SIGMA: f32 = 3.33;
 const TILE: f32 = 16.0;
 
@@ -90,7 +76,7 @@ fn invisible(g: u32) {
 
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let g = gid.x + gid.y * groups.x * 256u;
+    let g = flat_index(gid, groups);
     let n = cam.counts.x;
     if (g == n) {
         tile_counts[n] = 0u;

@@ -4,19 +4,6 @@
 // coefficients, with the view direction's dependence on the mean). One
 // thread per Gaussian.
 
-struct Camera {
-    rot0: vec4<f32>,
-    rot1: vec4<f32>,
-    rot2: vec4<f32>,
-    campos: vec4<f32>,
-    intrinsics: vec4<f32>,
-    limits: vec4<f32>,
-    size: vec4<f32>,
-    footprint: vec4<f32>,
-    background: vec4<f32>,
-    counts: vec4<u32>,
-    counts2: vec4<u32>,
-}
 
 @group(0) @binding(0) var<uniform> cam: Camera;
 @group(0) @binding(1) var<storage, read> means: array<f32>;
@@ -65,7 +52,7 @@ fn zero_outputs(g: u32, k: u32) {
 
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let g = gid.x + gid.y * groups.x * 256u;
+    let g = flat_index(gid, groups);
     let n = cam.counts.x;
     if (g >= n) {
         return;

@@ -3,15 +3,8 @@
 // or past σ = 5.55, stop before transmittance falls to 1e-4). The tile's
 // Gaussians are staged through workgroup memory 256 at a time.
 
-struct Params {
-    width: u32,
-    height: u32,
-    tiles_x: u32,
-    _pad: u32,
-    background: vec4<f32>,
-}
 
-@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(0) var<uniform> params: RasterParams;
 @group(0) @binding(1) var<storage, read> projected: array<f32>;
 @group(0) @binding(2) var<storage, read> sorted_index: array<u32>;
 @group(0) @binding(3) var<storage, read> ranges: array<u32>;
@@ -21,10 +14,6 @@ struct Params {
 // contributor, where the backward pass starts.
 @group(0) @binding(5) var<storage, read_write> last_contributor: array<u32>;
 
-const ALPHA_MAX: f32 = 0.999;
-const ALPHA_MIN: f32 = 0.00392156862745098;
-const SIGMA_SKIP: f32 = 5.55;
-const T_STOP: f32 = 1e-4;
 
 var<workgroup> tile_range: vec2<u32>;
 var<workgroup> batch_mean: array<vec2<f32>, 256>;

@@ -7,15 +7,8 @@
 // lane per subgroup adds them to the global sums (float adds by
 // compare-and-swap, which every device supports).
 
-struct Params {
-    width: u32,
-    height: u32,
-    tiles_x: u32,
-    _pad: u32,
-    background: vec4<f32>,
-}
 
-@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(0) var<uniform> params: RasterParams;
 @group(0) @binding(1) var<storage, read> projected: array<f32>;
 @group(0) @binding(2) var<storage, read> sorted_index: array<u32>;
 @group(0) @binding(3) var<storage, read> ranges: array<u32>;
@@ -27,9 +20,6 @@ struct Params {
 // (the projection backward writes visibility in the tenth).
 @group(0) @binding(7) var<storage, read_write> grads: array<atomic<u32>>;
 
-const ALPHA_MAX: f32 = 0.999;
-const ALPHA_MIN: f32 = 0.00392156862745098;
-const SIGMA_SKIP: f32 = 5.55;
 
 var<workgroup> tile_range: vec2<u32>;
 var<workgroup> furthest: atomic<u32>;

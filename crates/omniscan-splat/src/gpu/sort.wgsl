@@ -24,9 +24,6 @@ struct Params {
 @group(0) @binding(32) var<storage, read_write> key_depth: array<u32>;
 @group(0) @binding(33) var<storage, read_write> key_index: array<u32>;
 
-fn flat_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
-    return gid.x + gid.y * groups.x * 256u;
-}
 
 @compute @workgroup_size(256)
 fn depth_keys(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {

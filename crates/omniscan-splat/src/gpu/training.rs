@@ -6,7 +6,9 @@
 //! Everything comes back to the host only where the CPU trainer's logic needs
 //! it: densification, opacity resets, checkpoints and the end.
 
-use super::{GROUP, GpuFrame, GpuRenderer, SceneBuffers, gpu_error, grid};
+use super::{
+    GROUP, GpuFrame, GpuRenderer, SceneBuffers, compute_pipeline, gpu_error, grid, shader,
+};
 use crate::SplatError;
 use crate::raster::{Camera, Settings};
 use crate::{Splats, sh};
@@ -27,24 +29,10 @@ pub(crate) struct OptimiseKernels {
 
 impl OptimiseKernels {
     pub(crate) fn new(device: &wgpu::Device) -> OptimiseKernels {
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("optimise"),
-            source: wgpu::ShaderSource::Wgsl(OPTIMISE.into()),
-        });
-        let loss = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("loss"),
-            source: wgpu::ShaderSource::Wgsl(LOSS.into()),
-        });
-        let pipeline = |module: &wgpu::ShaderModule, entry: &str| {
-            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(entry),
-                layout: None,
-                module,
-                entry_point: Some(entry),
-                compilation_options: Default::default(),
-                cache: None,
-            })
-        };
+        let module = shader(device, "optimise", OPTIMISE);
+        let loss = shader(device, "loss", LOSS);
+        let pipeline =
+            |module: &wgpu::ShaderModule, entry: &str| compute_pipeline(device, module, entry);
         OptimiseKernels {
             activate: pipeline(&module, "activate"),
             statistics: pipeline(&module, "statistics"),
