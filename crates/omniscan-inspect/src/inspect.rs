@@ -13,7 +13,8 @@ use crate::InspectError;
 use crate::align::{AlignSettings, Alignment, align_model, model_points};
 use crate::differencing::{PixelComparison, compare_pixels, geometric_evidence, visual_evidence};
 use crate::verdict::{PairEvidence, Verdict, VerdictSettings, decide};
-use crate::views::{View, ViewRender, render_views, sphere_views, surface_points};
+use crate::views::{View, ViewRender, render_views, render_views_on, sphere_views, surface_points};
+use omniscan_splat::backend::{Backend, Renderer};
 
 /// Settings of an inspection. Lengths in millimetres are converted to the
 /// models' units with `units_per_metre`.
@@ -37,6 +38,8 @@ pub struct InspectSettings {
     /// Indices of models known to be good; `None` = any model may be defective.
     pub references: Option<Vec<usize>>,
     pub align: AlignSettings,
+    /// Where the views are rendered (`auto`: a real GPU when there is one).
+    pub backend: Backend,
 }
 
 impl Default for InspectSettings {
@@ -53,6 +56,7 @@ impl Default for InspectSettings {
             min_visual_area_mm2: 8.0,
             references: None,
             align: AlignSettings::default(),
+            backend: Backend::Auto,
         }
     }
 }
@@ -247,7 +251,11 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
             }
         })
         .collect::<Result<_, _>>()?;
-    let renders: Vec<Vec<ViewRender>> = aligned.iter().map(|m| render_views(m, &views)).collect();
+    let renderer = Renderer::new(settings.backend)?;
+    let renders: Vec<Vec<ViewRender>> = aligned
+        .iter()
+        .map(|m| render_views_on(&renderer, m, &views))
+        .collect::<Result<_, _>>()?;
     let spacing = settings.spacing_mm * unit;
     let surfaces: Vec<PointCloud> = renders
         .par_iter()

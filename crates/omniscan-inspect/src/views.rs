@@ -17,6 +17,7 @@ use omniscan_core::{Intrinsics, Pose};
 use omniscan_register::PointCloud;
 use omniscan_register::preprocess::voxel_downsample;
 use omniscan_splat::Splats;
+use omniscan_splat::backend::Renderer;
 use omniscan_splat::raster::{Camera, Settings, render};
 
 /// One viewpoint: where the camera is (camera-to-world, OpenCV axes) and its pinhole.
@@ -102,33 +103,62 @@ impl ViewRender {
     }
 }
 
-/// Renders `model` from every view.
+/// Renders `model` from every view on the CPU.
 pub fn render_views(model: &Splats, views: &[View]) -> Vec<ViewRender> {
     let gaussians = model.gaussians::<f32>();
-    let settings = Settings {
-        mode: model.render_mode(),
-        ..Settings::default()
-    };
+    let settings = render_settings(model);
     views
         .par_iter()
+        .map(|view| view_render(render(&gaussians, &view.camera(), &settings).1))
+        .collect()
+}
+
+/// Renders `model` from every view on `renderer` (the CPU in parallel, a GPU
+/// one view after another).
+pub fn render_views_on(
+    renderer: &Renderer,
+    model: &Splats,
+    views: &[View],
+) -> Result<Vec<ViewRender>, omniscan_splat::SplatError> {
+    if !renderer.is_gpu() {
+        return Ok(render_views(model, views));
+    }
+    let gaussians = model.gaussians::<f32>();
+    let settings = render_settings(model);
+    views
+        .iter()
         .map(|view| {
-            let camera = view.camera();
-            let (_, r) = render(&gaussians, &camera, &settings);
-            let depth = r
-                .depth
-                .iter()
-                .zip(&r.alpha)
-                .map(|(&d, &a)| if a > 1e-3 { d / a } else { 0.0 })
-                .collect();
-            ViewRender {
-                width: r.width,
-                height: r.height,
-                rgb: r.rgb,
-                alpha: r.alpha,
-                depth,
-            }
+            Ok(view_render(renderer.render(
+                &gaussians,
+                &view.camera(),
+                &settings,
+            )?))
         })
         .collect()
+}
+
+fn render_settings(model: &Splats) -> Settings<f32> {
+    Settings {
+        mode: model.render_mode(),
+        ..Settings::default()
+    }
+}
+
+/// A render with its expected depth (depth sum over alpha).
+fn view_render(r: omniscan_splat::raster::Render<f32>) -> ViewRender {
+    let depth = r
+        .depth
+        .iter()
+        .zip(&r.alpha)
+        .map(|(&d, &a)| if a > 1e-3 { d / a } else { 0.0 })
+        .collect();
+    ViewRender {
+        width: r.width,
+        height: r.height,
+        rgb: r.rgb,
+        alpha: r.alpha,
+        depth,
+    }
 }
 
 /// Pixels at least this opaque are surface.

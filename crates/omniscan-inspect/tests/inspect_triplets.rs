@@ -177,3 +177,34 @@ fn bad_input_is_an_error_not_a_panic() {
     };
     assert!(inspect(&copies, &bad_refs).is_err());
 }
+
+#[test]
+#[ignore = "needs a Vulkan device (lavapipe: apt-get install mesa-vulkan-drivers)"]
+fn the_gpu_renders_give_the_cpu_verdict() {
+    use omniscan_splat::backend::Backend;
+    let (copies, centre) = triplet(Some((DefectKind::Bump, 6.0)), 1, 4);
+    let cpu = inspect(
+        &copies,
+        &InspectSettings {
+            backend: Backend::Cpu,
+            ..settings()
+        },
+    )
+    .unwrap();
+    let gpu = inspect(
+        &copies,
+        &InspectSettings {
+            backend: Backend::Gpu,
+            ..settings()
+        },
+    )
+    .unwrap();
+    assert_eq!(gpu.verdict.defective, Some(1), "{:#?}", gpu.verdict);
+    assert_eq!(gpu.verdict.defective, cpu.verdict.defective);
+    assert_eq!(gpu.verdict.defect_type, cpu.verdict.defect_type);
+    assert!(
+        located(&gpu, 1, &centre.unwrap(), 6.0),
+        "{:#?}",
+        gpu.verdict.regions
+    );
+}

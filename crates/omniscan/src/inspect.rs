@@ -50,6 +50,9 @@ pub struct InspectArgs {
     /// Seed of the registration's random choices.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Where the views are rendered: auto (a real GPU when there is one, else the CPU), cpu, or gpu.
+    #[arg(long, default_value = "auto")]
+    pub backend: omniscan_splat::backend::Backend,
     /// Print verdict.json instead of a summary.
     #[arg(long)]
     pub json: bool,
@@ -80,6 +83,7 @@ fn settings_from(args: &InspectArgs) -> Result<InspectSettings> {
         views: args.views,
         width: args.width,
         height: args.height,
+        backend: args.backend,
         references,
         ..InspectSettings::default()
     };

@@ -97,7 +97,17 @@ pub fn run(args: TrainArgs) -> Result<()> {
         .progress_chars("=> "),
     );
     let mut recent = Vec::new();
-    let renderer = Renderer::new(args.backend)?;
+    let renderer = match Renderer::new(args.backend)? {
+        // `auto` falls back to the CPU on a GPU that can render but not train.
+        Renderer::Gpu(gpu) if args.backend == Backend::Auto && !gpu.can_train() => {
+            eprintln!(
+                "{} cannot run the backward pass (no subgroup operations); training on the CPU",
+                gpu.adapter()
+            );
+            Renderer::Cpu
+        }
+        r => r,
+    };
     eprintln!("training on {}", renderer.describe());
     let initial = || -> Result<_> {
         Ok(match &args.init {

@@ -278,6 +278,11 @@ impl GpuRenderer {
         format!("{} ({:?})", self.info.name, self.info.backend)
     }
 
+    /// Whether the device can train (the backward kernels need subgroup operations).
+    pub fn can_train(&self) -> bool {
+        self.backward.is_some() && self.optimise.is_some()
+    }
+
     /// Whether the device is a software rasterizer (lavapipe).
     pub fn is_software(&self) -> bool {
         self.info.device_type == wgpu::DeviceType::Cpu
