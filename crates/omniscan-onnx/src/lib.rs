@@ -26,7 +26,7 @@
 pub mod graph;
 
 use std::path::{Path, PathBuf};
-use std::sync::{Mutex, OnceLock};
+use std::sync::Mutex;
 
 use ort::session::Session;
 use ort::value::Tensor as OrtTensor;
@@ -57,9 +57,9 @@ pub const RUNTIME_VARIABLE: &str = "ORT_DYLIB_PATH";
 const HOW_TO_GET: &str = "ONNX models (learned masking backends, LPIPS) need ONNX Runtime's shared library, version 1.24 or newer: \
 `pip install onnxruntime`, then pass its `onnxruntime/capi/libonnxruntime.so.*` with --onnx-runtime or set ORT_DYLIB_PATH";
 
-static ENVIRONMENT: OnceLock<
-    std::result::Result<(PathBuf, ort::environment::Environment), String>,
-> = OnceLock::new();
+/// The process's ONNX Runtime environment, once one has started (a failed
+/// attempt is not remembered, so a later call may name another library).
+static ENVIRONMENT: Mutex<Option<ort::environment::Environment>> = Mutex::new(None);
 
 /// The ONNX Runtime library to load: `explicit`, else `$ORT_DYLIB_PATH`,
 /// else the library inside `python3`'s `onnxruntime` package.
@@ -118,25 +118,26 @@ fn python_runtime() -> Option<PathBuf> {
 
 /// Loads ONNX Runtime once per process (its environment is process-wide);
 /// later calls reuse it whatever path they name.
-fn environment(explicit: Option<&Path>) -> Result<&'static ort::environment::Environment> {
-    let loaded = ENVIRONMENT.get_or_init(|| {
-        let path = find_runtime(explicit).map_err(|e| e.to_string())?;
-        let builder = ort::init_from(&path).map_err(|e| {
-            format!(
-                "{}: could not load ONNX Runtime: {e}. {HOW_TO_GET}",
-                path.display()
-            )
-        })?;
-        let env = builder
-            .with_name("omniscan")
-            .build()
-            .map_err(|e| format!("{}: ONNX Runtime did not start: {e}", path.display()))?;
-        Ok((path, env))
-    });
-    match loaded {
-        Ok((_, env)) => Ok(env),
-        Err(message) => Err(OnnxError::Invalid(message.clone())),
+fn environment(explicit: Option<&Path>) -> Result<ort::environment::Environment> {
+    let mut slot = ENVIRONMENT
+        .lock()
+        .map_err(|_| OnnxError::Invalid("ONNX Runtime: an earlier start panicked".into()))?;
+    if let Some(env) = slot.as_ref() {
+        return Ok(env.clone());
     }
+    let path = find_runtime(explicit)?;
+    let builder = ort::init_from(&path).map_err(|e| {
+        OnnxError::file(
+            &path,
+            format!("could not load ONNX Runtime: {e}. {HOW_TO_GET}"),
+        )
+    })?;
+    let env = builder
+        .with_name("omniscan")
+        .build()
+        .map_err(|e| OnnxError::file(&path, format!("ONNX Runtime did not start: {e}")))?;
+    *slot = Some(env.clone());
+    Ok(env)
 }
 
 /// One input or output of a model: its name and dimensions (`-1` where the
@@ -212,7 +213,7 @@ impl OnnxModel {
         }
         let env = environment(runtime)?;
         let fail = |e: String| OnnxError::file(path, format!("not a usable ONNX model: {e}"));
-        let session = Session::builder(env)
+        let session = Session::builder(&env)
             .map_err(|e| fail(e.to_string()))?
             .commit_from_file(path)
             .map_err(|e| fail(e.to_string()))?;
