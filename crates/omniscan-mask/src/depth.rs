@@ -74,16 +74,12 @@ impl DepthEstimator for SensorDepth {
         })?;
         let path = capture.resolve(rel);
         let depth = Plane::depth_metres(&image_io::read_depth(&path)?);
-        let size = (capture.intrinsics().width, capture.intrinsics().height);
-        if (depth.width as u32, depth.height as u32) != size {
-            return Err(MaskError::file(
-                &path,
-                format!(
-                    "is {}x{} but the capture's camera is {}x{}",
-                    depth.width, depth.height, size.0, size.1
-                ),
-            ));
-        }
+        crate::pipeline::check_size(
+            &path,
+            depth.width,
+            depth.height,
+            (capture.intrinsics().width, capture.intrinsics().height),
+        )?;
         Ok(depth)
     }
 }

@@ -304,7 +304,8 @@ fn neighbour(capture: &Capture, index: usize) -> Option<usize> {
         .copied()
 }
 
-fn check_size(path: &Path, w: usize, h: usize, expected: (u32, u32)) -> Result<()> {
+/// Checks that an image or depth map read from `path` has the camera's size.
+pub(crate) fn check_size(path: &Path, w: usize, h: usize, expected: (u32, u32)) -> Result<()> {
     if (w as u32, h as u32) != expected {
         return Err(MaskError::file(
             path,

@@ -242,6 +242,15 @@ fn max_pool_backward(grad: &Tensor, argmax: &[u32], input_shape: (usize, usize, 
     out
 }
 
+/// Adds the gradient arriving through a max pool (`grad`, at the pooled
+/// size) to `skip`, the gradient of the pool's input from the skip connection.
+fn add_pool_gradient(skip: &mut Tensor, grad: &Tensor, argmax: &[u32]) {
+    let pooled = max_pool_backward(grad, argmax, (skip.channels, skip.height, skip.width));
+    for (a, b) in skip.data.iter_mut().zip(&pooled.data) {
+        *a += b;
+    }
+}
+
 fn upsample(t: &Tensor) -> Tensor {
     let (h, w) = (t.height * 2, t.width * 2);
     let mut out = Tensor::zeros(t.channels, h, w);
@@ -477,28 +486,14 @@ impl UNet {
         relu_backward(&mut g, &act.a3);
         let (g_p2, gw) = l[4].backward(&act.p2, &g);
         grads[4] = Some(gw);
-        let g_pool2 = max_pool_backward(
-            &g_p2,
-            &act.pool2,
-            (act.s2.channels, act.s2.height, act.s2.width),
-        );
-        for (a, b) in g_s2.data.iter_mut().zip(&g_pool2.data) {
-            *a += b;
-        }
+        add_pool_gradient(&mut g_s2, &g_p2, &act.pool2);
         relu_backward(&mut g_s2, &act.s2);
         let (mut g, gw) = l[3].backward(&act.a2, &g_s2);
         grads[3] = Some(gw);
         relu_backward(&mut g, &act.a2);
         let (g_p1, gw) = l[2].backward(&act.p1, &g);
         grads[2] = Some(gw);
-        let g_pool1 = max_pool_backward(
-            &g_p1,
-            &act.pool1,
-            (act.s1.channels, act.s1.height, act.s1.width),
-        );
-        for (a, b) in g_s1.data.iter_mut().zip(&g_pool1.data) {
-            *a += b;
-        }
+        add_pool_gradient(&mut g_s1, &g_p1, &act.pool1);
         relu_backward(&mut g_s1, &act.s1);
         let (mut g, gw) = l[1].backward(&act.a1, &g_s1);
         grads[1] = Some(gw);
@@ -855,22 +850,13 @@ fn area_resized(image: &RgbImage, w: usize, h: usize) -> Tensor {
 
 /// Working-size probabilities resampled bilinearly to `image`'s size.
 fn to_image_size(small: &Plane<f32>, image: &RgbImage) -> Plane<f32> {
-    let (w, h) = (image.width as usize, image.height as usize);
-    let (sx, sy) = (
-        small.width as f32 / w as f32,
-        small.height as f32 / h as f32,
-    );
-    let mut data = Vec::with_capacity(w * h);
-    for y in 0..h {
-        for x in 0..w {
-            data.push(small.sample((x as f32 + 0.5) * sx - 0.5, (y as f32 + 0.5) * sy - 0.5));
-        }
-    }
-    Plane {
-        width: w,
-        height: h,
-        data,
-    }
+    crate::onnx::resampled(
+        &small.data,
+        small.width,
+        small.height,
+        image.width as usize,
+        image.height as usize,
+    )
 }
 
 fn threshold(p: &Plane<f32>) -> Plane<bool> {

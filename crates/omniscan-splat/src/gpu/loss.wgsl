@@ -50,6 +50,18 @@ fn add_float(i: u32, v: f32) {
 
 var<workgroup> partial: array<vec4<f32>, 256>;
 
+// The loss weight of pixel `i` (0 on the gripper).
+fn weight_of(i: u32) -> f32 {
+    return 1.0 - target_data[5u * i + 4u];
+}
+
+// Channel `c` of the target at pixel `i`: the photo on the object, the
+// step's background elsewhere.
+fn target_colour(i: u32, c: u32) -> f32 {
+    let m = target_data[5u * i + 3u];
+    return target_data[5u * i + c] * m + params.background[c] * (1.0 - m);
+}
+
 // Sums `partial` over the workgroup (call from uniform control flow).
 fn workgroup_sum(lid: u32) -> vec4<f32> {
     workgroupBarrier();
@@ -73,10 +85,10 @@ fn prepare(
     var mine = vec4<f32>(0.0);
     if (i < n) {
         let m = target_data[5u * i + 3u];
-        let weight = 1.0 - target_data[5u * i + 4u];
+        let weight = weight_of(i);
         for (var c = 0u; c < 3u; c++) {
             let x = image[6u * i + c];
-            let y = target_data[5u * i + c] * m + params.background[c] * (1.0 - m);
+            let y = target_colour(i, c);
             planes[(5u * c) * n + i] = x;
             planes[(5u * c + 1u) * n + i] = y;
             planes[(5u * c + 2u) * n + i] = x * x;
@@ -162,7 +174,7 @@ fn ssim_terms(
     let n = params.width * params.height;
     var mine = 0.0;
     if (i < n) {
-        let weight = (1.0 - target_data[5u * i + 4u]) / (3.0 * params.weight_sum);
+        let weight = weight_of(i) / (3.0 * params.weight_sum);
         for (var c = 0u; c < 3u; c++) {
             let mx = blurred[(5u * c) * n + i];
             let my = blurred[(5u * c + 1u) * n + i];
@@ -208,11 +220,11 @@ fn gradient(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
         return;
     }
     let m = target_data[5u * i + 3u];
-    let weight = 1.0 - target_data[5u * i + 4u];
+    let weight = weight_of(i);
     let lam = params.lambda_ssim;
     for (var c = 0u; c < 3u; c++) {
         let x = image[6u * i + c];
-        let y = target_data[5u * i + c] * m + params.background[c] * (1.0 - m);
+        let y = target_colour(i, c);
         let l1 = (1.0 - lam) * weight * signum(x - y) / (3.0 * params.weight_sum);
         let ga = blurred_terms[(3u * c) * n + i];
         let gb = blurred_terms[(3u * c + 1u) * n + i];

@@ -307,28 +307,6 @@ impl GpuRenderer {
         result
     }
 
-    /// The backward pass of `frame` (rendered from `state`), the
-    /// densification statistics and one Adam step (number `t`) of every
-    /// parameter group, all on the device.
-    pub fn step_state(
-        &self,
-        state: &DeviceState,
-        frame: &GpuFrame,
-        d_rgb: &[[f32; 3]],
-        d_alpha: &[f32],
-        rates: &StepRates,
-        t: i32,
-    ) -> Result<(), SplatError> {
-        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let (mut encoder, grads2d, outputs) = self.record_backward(frame, d_rgb, d_alpha)?;
-        self.record_step(&mut encoder, state, frame, &grads2d, &outputs, rates, t)?;
-        self.queue.submit([encoder.finish()]);
-        if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(gpu_error("the training step failed", e));
-        }
-        Ok(())
-    }
-
     /// Records the densification statistics and the Adam steps of every group.
     #[allow(clippy::too_many_arguments)]
     fn record_step(
