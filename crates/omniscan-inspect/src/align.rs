@@ -88,6 +88,9 @@ impl Default for AlignSettings {
     }
 }
 
+/// A global registration whose best fitness is below this is tried again.
+const RETRY_BELOW_FITNESS: f64 = 0.95;
+
 /// Mean per-pixel RGB distance between renders of `model` moved by `pose` and
 /// the reference's renders, over pixels either covers.
 fn appearance_distance(
@@ -128,7 +131,11 @@ pub fn align_model(
     reference_renders: &[crate::views::ViewRender],
     settings: &AlignSettings,
 ) -> Result<Alignment, InspectError> {
-    let result = global_registration(
+    // Feature matching on splat centres sometimes lands on a wrong pose
+    // whose fitness still looks fair (0.75-0.82 where the right pose of a
+    // good copy scores 0.99-1.0: measured on the Omni-Scan models). Such a
+    // result is retried with other seeds and feature scales, keeping the best.
+    let mut result = global_registration(
         source,
         target,
         &GlobalSettings {
@@ -136,12 +143,46 @@ pub fn align_model(
             ..GlobalSettings::default()
         },
     )?;
+    let automatic_voxel = result.voxel;
+    for (attempt, scale) in [0.75, 1.33, 0.6, 1.6].into_iter().enumerate() {
+        if result.best.registration.fitness >= RETRY_BELOW_FITNESS {
+            break;
+        }
+        let retry = global_registration(
+            source,
+            target,
+            &GlobalSettings {
+                seed: settings.seed.wrapping_add(attempt as u64 + 1),
+                voxel: Some(scale * automatic_voxel),
+                ..GlobalSettings::default()
+            },
+        );
+        tracing::debug!(
+            "global registration retried at {scale}x the voxel: fitness {:?}",
+            retry.as_ref().map(|r| r.best.registration.fitness).ok()
+        );
+        if let Ok(retry) = retry
+            && retry.best.registration.fitness > result.best.registration.fitness
+        {
+            result = retry;
+        }
+    }
     let best_fitness = result
         .candidates
         .iter()
         .map(|c| c.registration.fitness)
         .fold(0.0, f64::max);
     // Distinct near-tied poses (twins) go to the appearance test.
+    for c in &result.candidates {
+        tracing::debug!(
+            "candidate {}: fitness {:.4} rmse {:.4} colour {:?} pose {:?}",
+            c.method,
+            c.registration.fitness,
+            c.registration.inlier_rmse,
+            c.color_rmse,
+            omniscan_core::geometry::pose_to_rows(&c.registration.transformation)
+        );
+    }
     let mut ties: Vec<&omniscan_register::global::Candidate> = Vec::new();
     let mut by_fitness: Vec<_> = result.candidates.iter().collect();
     by_fitness.sort_by(|a, b| b.registration.fitness.total_cmp(&a.registration.fitness));
@@ -177,6 +218,10 @@ pub fn align_model(
         let mut best = (f64::INFINITY, 0);
         for (i, s) in scores.into_iter().enumerate() {
             let s = s?;
+            tracing::debug!(
+                "twin {i}: fitness {:.4}, appearance {s:.4}",
+                ties[i].registration.fitness
+            );
             if s < best.0 {
                 best = (s, i);
             }

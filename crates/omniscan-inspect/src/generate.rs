@@ -20,7 +20,10 @@ use omniscan_splat::Splats;
 use omniscan_splat::orbit::robust_bounds;
 use omniscan_splat::sh::C0;
 
-use crate::views::{SURFACE_ALPHA, back_project, render_views, smooth_depth, sphere_views};
+use omniscan_core::Intrinsics;
+use omniscan_core::geometry::look_at;
+
+use crate::views::{SURFACE_ALPHA, View, back_project, render_views, smooth_depth, sphere_views};
 use crate::{InspectError, standard_normal};
 
 /// How a good copy differs from the original.
@@ -323,7 +326,19 @@ pub fn plant_defect(
             moved.len()
         }
         DefectKind::Remove => {
-            let gone = within(size);
+            // Splats whose body reaches into the ball go too, or their
+            // neighbours' tails would paint the hole over; splats much
+            // larger than the ball are the part's coarse shape and stay.
+            let gone: Vec<usize> = (0..model.len())
+                .filter(|&i| {
+                    let reach = model.log_scales[i]
+                        .iter()
+                        .map(|s| s.exp() as f64)
+                        .fold(0.0, f64::max);
+                    let distance = offset(i).norm();
+                    distance <= size || (reach <= size && distance - 2.0 * reach <= size)
+                })
+                .collect();
             let keep: Vec<usize> = (0..model.len()).filter(|i| !gone.contains(i)).collect();
             out = select(model, &keep);
             gone.len()
@@ -356,47 +371,18 @@ pub fn plant_defect(
             count
         }
         DefectKind::Recolour | DefectKind::Scratch | DefectKind::Tape => {
-            let depth_limit = (0.25 * size).max(1e-3 * units_per_metre);
-            // A line thinner than the splats would miss them all: at least
-            // half the distance to the fourth nearest splat.
-            let neighbourhood = within(size);
-            let mut nearby: Vec<f64> = neighbourhood.iter().map(|&i| offset(i).norm()).collect();
-            nearby.sort_by(f64::total_cmp);
-            let local_spacing = nearby.get(3).copied().unwrap_or(0.0);
-            // The rendered surface can lie a little off the splat centres
-            // that make it: widen the depth band until the mark holds splats.
-            let region_within = |depth_limit: f64| -> Vec<usize> {
-                (0..model.len())
-                    .filter(|&i| {
-                        let d = offset(i);
-                        let (along_n, along_t, along_b) =
-                            (d.dot(&n), d.dot(&tangent), d.dot(&bitangent));
-                        if along_n.abs() > depth_limit {
-                            return false;
-                        }
-                        match kind {
-                            DefectKind::Recolour => {
-                                (along_t.powi(2) + along_b.powi(2)).sqrt() <= 0.5 * size
-                            }
-                            DefectKind::Scratch => {
-                                let half_width = (size / 12.0)
-                                    .max(0.35e-3 * units_per_metre)
-                                    .max(0.5 * local_spacing);
-                                along_t.abs() <= 0.5 * size && along_b.abs() <= half_width
-                            }
-                            _ => along_t.abs() <= 0.5 * size && along_b.abs() <= 0.25 * size,
-                        }
-                    })
-                    .collect()
+            // A line thinner than the splats would be lost under them: at
+            // least 0.35 mm wide either side of its axis.
+            let half = match kind {
+                DefectKind::Recolour => (0.5 * size, 0.5 * size),
+                DefectKind::Scratch => (0.5 * size, (size / 12.0).max(0.35e-3 * units_per_metre)),
+                _ => (0.5 * size, 0.25 * size),
             };
-            let mut region = region_within(depth_limit);
-            for widen in [2.0, 4.0, 8.0] {
-                if !region.is_empty() {
-                    break;
-                }
-                region = region_within(widen * depth_limit);
-            }
-            let local = mean_colour(model, &neighbourhood);
+            let inside = |u: f64, v: f64| match kind {
+                DefectKind::Recolour => u * u + v * v <= half.0 * half.0,
+                _ => u.abs() <= half.0 && v.abs() <= half.1,
+            };
+            let local = mean_colour(model, &within(size));
             let palette: &[[f64; 3]] = match kind {
                 DefectKind::Scratch => &[[0.05, 0.05, 0.05], [0.95, 0.95, 0.95]],
                 DefectKind::Tape => &[[0.95, 0.85, 0.1], [0.1, 0.3, 0.9], [0.9, 0.9, 0.9]],
@@ -407,11 +393,19 @@ pub fn plant_defect(
                     [0.95, 0.9, 0.1],
                 ],
             };
-            let colour = contrasting(local, palette);
-            for &i in &region {
-                set_colour(&mut out, i, colour);
-            }
-            region.len()
+            let frame = SurfaceFrame {
+                centre: p,
+                normal: n,
+                tangent,
+                bitangent,
+            };
+            let mark = Decal {
+                half_extent: half,
+                inside: &inside,
+                colour: contrasting(local, palette),
+                units_per_metre,
+            };
+            add_decal(&mut out, model, &frame, &mark)
         }
     };
     if affected == 0 {
@@ -431,6 +425,118 @@ pub fn plant_defect(
             affected_splats: affected,
         },
     ))
+}
+
+/// Where a surface mark goes: a point of the rendered surface and the
+/// directions of its tangent plane.
+struct SurfaceFrame {
+    centre: Point3<f64>,
+    normal: Vector3<f64>,
+    tangent: Vector3<f64>,
+    bitangent: Vector3<f64>,
+}
+
+/// A mark painted on the surface: its half extents along the tangent and
+/// bitangent (model units), its shape, its colour.
+struct Decal<'a> {
+    half_extent: (f64, f64),
+    inside: &'a dyn Fn(f64, f64) -> bool,
+    colour: [f64; 3],
+    units_per_metre: f64,
+}
+
+/// Lays `mark` on the surface of `model` around `frame` as small, flat,
+/// opaque splats, and returns how many were added.
+///
+/// Recolouring the splats whose centres fall in the mark leaves the mark
+/// invisible on a trained model: there the surface is made of large,
+/// faint, overlapping splats mostly centred elsewhere (measured on the
+/// Omni-Scan models: 3-4 mm splats at opacity 0.1, where a 5 mm recolour
+/// touched 6 splats and changed no pixel). A painted mark on a real part
+/// would be fitted by small opaque splats on the surface, which is what
+/// this adds: a close-up render along the normal gives the depth of the
+/// surface the model shows, and each decal splat sits just above it.
+fn add_decal(out: &mut Splats, model: &Splats, frame: &SurfaceFrame, mark: &Decal) -> usize {
+    let millimetre = 1e-3 * mark.units_per_metre;
+    let extent = mark.half_extent.0.max(mark.half_extent.1);
+    let spacing = (0.5 * millimetre).min(0.5 * mark.half_extent.0.min(mark.half_extent.1));
+    let distance = (8.0 * extent).max(20.0 * millimetre);
+    let pixels = 128u32;
+    let focal = 0.5 * pixels as f64 * distance / (1.3 * extent);
+    let view = View {
+        camera_to_world: look_at(
+            &(frame.centre + frame.normal * distance),
+            &frame.centre,
+            &frame.tangent,
+        ),
+        intrinsics: Intrinsics {
+            width: pixels,
+            height: pixels,
+            fx: focal,
+            fy: focal,
+            cx: 0.5 * pixels as f64,
+            cy: 0.5 * pixels as f64,
+        },
+        near: 0.05 * distance,
+        far: 50.0 * distance,
+    };
+    let render = &render_views(model, std::slice::from_ref(&view))[0];
+    let world_to_camera = view.camera_to_world.inverse();
+    let rotation =
+        nalgebra::Rotation3::from_basis_unchecked(&[frame.tangent, frame.bitangent, frame.normal]);
+    let q = UnitQuaternion::from_rotation_matrix(&rotation);
+    // Splats of half the spacing cover the mark without gaps; their centres
+    // stay one such radius inside its outline, so the mark shows at its size.
+    let radius = 0.5 * spacing;
+    let flat = [
+        radius.ln() as f32,
+        radius.ln() as f32,
+        (0.1 * spacing).ln() as f32,
+    ];
+    let (h0, h1) = mark.half_extent;
+    let inset = (
+        (h0 / (h0 - radius).max(0.5 * h0)),
+        (h1 / (h1 - radius).max(0.5 * h1)),
+    );
+    let k = out.sh_coefficients();
+    let steps = |half: f64| (half / spacing).ceil() as i64;
+    let mut added = 0;
+    for a in -steps(mark.half_extent.0)..=steps(mark.half_extent.0) {
+        for b in -steps(mark.half_extent.1)..=steps(mark.half_extent.1) {
+            let (u, v) = (a as f64 * spacing, b as f64 * spacing);
+            if !(mark.inside)(u * inset.0, v * inset.1) {
+                continue;
+            }
+            let on_plane =
+                world_to_camera * (frame.centre + frame.tangent * u + frame.bitangent * v);
+            let k_ = &view.intrinsics;
+            let x = (k_.fx * on_plane.x / on_plane.z + k_.cx).floor();
+            let y = (k_.fy * on_plane.y / on_plane.z + k_.cy).floor();
+            if x < 0.0 || y < 0.0 || x >= pixels as f64 || y >= pixels as f64 {
+                continue;
+            }
+            let i = (y as u32 * pixels + x as u32) as usize;
+            let Some(depth) = render.surface_depth(i, SURFACE_ALPHA) else {
+                continue;
+            };
+            // Along the ray through the plane point to the rendered surface,
+            // then a little towards the camera so the mark lies on top.
+            let lifted = (depth as f64 - 0.3 * spacing).max(view.near);
+            let camera_point = on_plane * (lifted / on_plane.z);
+            let world = view.camera_to_world * camera_point;
+            out.means
+                .push([world.x as f32, world.y as f32, world.z as f32]);
+            out.log_scales.push(flat);
+            out.quats
+                .push([q.w as f32, q.i as f32, q.j as f32, q.k as f32]);
+            out.opacity_logits.push(4.0);
+            out.sh.extend(std::iter::repeat_n([0.0f32; 3], k));
+            let last = out.len() - 1;
+            set_colour(out, last, mark.colour);
+            added += 1;
+        }
+    }
+    added
 }
 
 /// The splats at `indices`.
@@ -563,15 +669,85 @@ mod tests {
         assert!(far);
     }
 
-    #[test]
-    fn visual_defects_change_colour_not_geometry() {
-        let model = part();
-        for kind in DefectKind::VISUAL {
-            let (marked, defect) = plant_defect(&model, kind, 4.0, 1.0, 11).unwrap();
-            assert_eq!(marked.means, model.means, "{kind:?}");
-            assert_ne!(marked.sh, model.sh, "{kind:?}");
-            assert!(defect.affected_splats > 0);
+    /// The test part made the way trained models are: large, faint,
+    /// overlapping splats.
+    fn fuzzy_part() -> Splats {
+        let mut model = part();
+        for i in 0..model.len() {
+            model.log_scales[i] = model.log_scales[i].map(|s| s + 1.2);
+            model.opacity_logits[i] = -1.5;
         }
+        model
+    }
+
+    /// Share of the pixels inside the mark's nominal area (a close-up render
+    /// along the normal) whose colour changed by more than 0.2.
+    fn visible_share(
+        before: &Splats,
+        after: &Splats,
+        defect: &PlantedDefect,
+        area_mm2: f64,
+    ) -> f64 {
+        let c = Point3::from(defect.centre);
+        let n = Vector3::from(defect.normal);
+        let distance = 0.05;
+        let view = View {
+            camera_to_world: look_at(&(c + n * distance), &c, &n.cross(&Vector3::x())),
+            intrinsics: Intrinsics {
+                width: 200,
+                height: 200,
+                fx: 2000.0,
+                fy: 2000.0,
+                cx: 100.0,
+                cy: 100.0,
+            },
+            near: 0.001,
+            far: 1.0,
+        };
+        let a = &render_views(before, std::slice::from_ref(&view))[0];
+        let b = &render_views(after, std::slice::from_ref(&view))[0];
+        let changed = (0..a.rgb.len())
+            .filter(|&i| {
+                (0..3)
+                    .map(|k| (a.rgb[i][k] - b.rgb[i][k]).powi(2))
+                    .sum::<f32>()
+                    .sqrt()
+                    > 0.2
+            })
+            .count();
+        // One pixel is (distance / focal)² of surface.
+        let pixel_mm2 = (distance / 2000.0 * 1000.0f64).powi(2);
+        changed as f64 * pixel_mm2 / area_mm2
+    }
+
+    #[test]
+    fn visual_defects_show_at_their_size_even_on_faint_splats() {
+        for model in [part(), fuzzy_part()] {
+            for (kind, area) in [
+                (DefectKind::Recolour, std::f64::consts::PI * 4.0),
+                (DefectKind::Tape, 4.0 * 2.0),
+                (DefectKind::Scratch, 4.0 * 0.7),
+            ] {
+                let (marked, defect) = plant_defect(&model, kind, 4.0, 1.0, 11).unwrap();
+                // The part is untouched; the mark is laid on it.
+                assert_eq!(marked.means[..model.len()], model.means[..], "{kind:?}");
+                assert_eq!(marked.sh[..model.sh.len()], model.sh[..], "{kind:?}");
+                assert_eq!(marked.len(), model.len() + defect.affected_splats);
+                let share = visible_share(&model, &marked, &defect, area);
+                assert!(
+                    (0.6..1.6).contains(&share),
+                    "{kind:?}: {share:.2} of the nominal area changed colour"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn a_removed_ball_leaves_a_hole_in_a_faint_model() {
+        let model = fuzzy_part();
+        let (removed, defect) = plant_defect(&model, DefectKind::Remove, 5.0, 1.0, 5).unwrap();
+        let share = visible_share(&model, &removed, &defect, std::f64::consts::PI * 25.0);
+        assert!(share > 0.3, "{share:.2}");
     }
 
     #[test]

@@ -11,7 +11,9 @@ use omniscan_splat::orbit::robust_bounds;
 
 use crate::InspectError;
 use crate::align::{AlignSettings, Alignment, align_model, model_points};
-use crate::differencing::{PixelComparison, compare_pixels, geometric_evidence, visual_evidence};
+use crate::differencing::{
+    PixelComparison, compare_pixels, depth_evidence, geometric_evidence, merge, visual_evidence,
+};
 use crate::verdict::{PairEvidence, Verdict, VerdictSettings, decide};
 use crate::views::{View, ViewRender, render_views, render_views_on, sphere_views, surface_points};
 use omniscan_splat::backend::{Backend, Renderer};
@@ -272,7 +274,10 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
             pairs.push(PairEvidence {
                 a,
                 b,
-                geometric: geometric_evidence(&surfaces[a], &surfaces[b], threshold),
+                geometric: merge(
+                    geometric_evidence(&surfaces[a], &surfaces[b], threshold),
+                    depth_evidence(&renders[a], &renders[b], &views, threshold, spacing),
+                ),
                 visual: visual_evidence(
                     &surfaces[a],
                     &surfaces[b],

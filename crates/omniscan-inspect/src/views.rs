@@ -92,7 +92,10 @@ pub struct ViewRender {
     pub height: u32,
     pub rgb: Vec<[f32; 3]>,
     pub alpha: Vec<f32>,
-    /// Expected depth along the optical axis (model units); 0 where nothing was drawn.
+    /// Depth of the first surface along the optical axis (model units): the
+    /// median depth, where the accumulated alpha reaches one half; 0 where
+    /// it never does. The expected depth would blend a faint skin with what
+    /// lies behind it.
     pub depth: Vec<f32>,
 }
 
@@ -144,20 +147,14 @@ fn render_settings(model: &Splats) -> Settings<f32> {
     }
 }
 
-/// A render with its expected depth (depth sum over alpha).
+/// A render with its surface depth.
 fn view_render(r: omniscan_splat::raster::Render<f32>) -> ViewRender {
-    let depth = r
-        .depth
-        .iter()
-        .zip(&r.alpha)
-        .map(|(&d, &a)| if a > 1e-3 { d / a } else { 0.0 })
-        .collect();
     ViewRender {
         width: r.width,
         height: r.height,
         rgb: r.rgb,
         alpha: r.alpha,
-        depth,
+        depth: r.median_depth,
     }
 }
 

@@ -436,6 +436,13 @@ pub struct Render<F> {
     pub rgb: Vec<[F; 3]>,
     pub alpha: Vec<F>,
     pub depth: Vec<F>,
+    /// Depth of the Gaussian at which the accumulated alpha reaches one
+    /// half (the median depth), 0 where it never does. Unlike the expected
+    /// depth it is a point on the first surface: behind a 95%-opaque skin
+    /// the expected depth is pulled towards whatever lies behind it
+    /// (measured: 0.35 mm behind a box face that has another face 40 mm
+    /// back), which misplaces every surface sample taken from it.
+    pub median_depth: Vec<F>,
     /// How many Gaussians were composited at each pixel.
     pub contributors: Vec<u32>,
 }
@@ -447,8 +454,8 @@ type Packed<F> = ([F; 2], [F; 3], F, [F; 3], F, [F; 4]);
 /// Side of the quarter tiles that cull Gaussians before compositing.
 const SUBTILE: u32 = TILE / 2;
 
-/// One pixel's result: index, colour, alpha, depth sum, contributors.
-type PixelResult<F> = (usize, [F; 3], F, F, u32);
+/// One pixel's result: index, colour, alpha, depth sum, median depth, contributors.
+type PixelResult<F> = (usize, [F; 3], F, F, F, u32);
 
 /// Composites the projected Gaussians into an image.
 pub fn rasterize<F: Real>(
@@ -504,6 +511,7 @@ pub fn rasterize<F: Real>(
                         let mut t_acc = F::one();
                         let mut c = [F::zero(); 3];
                         let mut d = F::zero();
+                        let mut median = F::zero();
                         let mut count = 0;
                         for &([mx, my], [a, b, cc], opacity, color, depth, _) in &local {
                             let (dx, dy) = (mx - fx, my - fy);
@@ -524,11 +532,21 @@ pub fn rasterize<F: Real>(
                                 *acc = *acc + col * w;
                             }
                             d = d + depth * w;
+                            if t_acc > F::c(0.5) && next <= F::c(0.5) {
+                                median = depth;
+                            }
                             t_acc = next;
                             count += 1;
                         }
                         let rgb = [0, 1, 2].map(|ch| c[ch] + t_acc * background[ch]);
-                        out.push(((py * width + px) as usize, rgb, F::one() - t_acc, d, count));
+                        out.push((
+                            (py * width + px) as usize,
+                            rgb,
+                            F::one() - t_acc,
+                            d,
+                            median,
+                            count,
+                        ));
                     }
                 }
             }
@@ -541,13 +559,15 @@ pub fn rasterize<F: Real>(
         rgb: vec![[F::zero(); 3]; n],
         alpha: vec![F::zero(); n],
         depth: vec![F::zero(); n],
+        median_depth: vec![F::zero(); n],
         contributors: vec![0; n],
     };
     for (_, pixels) in tile_out {
-        for (i, rgb, a, d, count) in pixels {
+        for (i, rgb, a, d, median, count) in pixels {
             r.rgb[i] = rgb;
             r.alpha[i] = a;
             r.depth[i] = d;
+            r.median_depth[i] = median;
             r.contributors[i] = count;
         }
     }

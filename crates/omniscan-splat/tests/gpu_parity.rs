@@ -126,6 +126,9 @@ fn compare(cpu: &Render<f32>, gpu: &Render<f32>) -> (f32, f32, f32, f64) {
         }
         alpha = alpha.max((cpu.alpha[i] - gpu.alpha[i]).abs());
         depth = depth.max((cpu.depth[i] - gpu.depth[i]).abs() / cpu.depth[i].abs().max(1.0));
+        depth = depth.max(
+            (cpu.median_depth[i] - gpu.median_depth[i]).abs() / cpu.median_depth[i].abs().max(1.0),
+        );
     }
     (rgb, alpha, depth, off as f64 / cpu.alpha.len() as f64)
 }

@@ -249,6 +249,11 @@ pub struct BenchArgs {
     /// Keep each triplet's report here.
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Run only these triplets (0-based numbers, comma-separated); the
+    /// others are generated but not inspected, so each one is the same
+    /// triplet as in a full run.
+    #[arg(long, value_delimiter = ',')]
+    pub only: Option<Vec<usize>>,
     #[arg(long)]
     pub json: bool,
 }
@@ -281,7 +286,11 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             Ok((p, u, m))
         })
         .collect::<Result<_>>()?;
-    let total = args.triplets + args.good_triplets;
+    let all = args.triplets + args.good_triplets;
+    let total = args
+        .only
+        .as_ref()
+        .map_or(all, |only| only.iter().filter(|&&t| t < all).count());
     let bar = ProgressBar::new(total as u64);
     bar.set_style(
         ProgressStyle::with_template("{bar:30} {pos}/{len} {msg} [{elapsed}<{eta}]")
@@ -293,7 +302,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     let mut rows = Vec::new();
     let (mut correct, mut located, mut defect_trials) = (0usize, 0usize, 0usize);
     let mut times = Vec::new();
-    for t in 0..total {
+    for t in 0..all {
         let (path, units, model) = &loaded[t % loaded.len()];
         let has_defect = t < args.triplets;
         let kind = if t % 2 == 0 {
@@ -338,6 +347,9 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             copies.push(copy);
             poses.push(pose);
         }
+        if args.only.as_ref().is_some_and(|only| !only.contains(&t)) {
+            continue;
+        }
         let settings = InspectSettings {
             units_per_metre: *units,
             views: args.views,
@@ -356,9 +368,44 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         let seconds = started.elapsed().as_secs_f64();
         times.push(seconds);
         let truth = if has_defect { slot } else { 3 };
+        let mut diagnostics = serde_json::Value::Null;
         let (predicted, found_type, is_located, error) = match &outcome {
             Ok(inspection) => {
                 let v = &inspection.verdict;
+                // Alignment error against the truth: model k's frame maps
+                // into the reference's by pose_0 · pose_k⁻¹.
+                let alignment_error: Vec<[f64; 2]> = inspection
+                    .alignments
+                    .iter()
+                    .zip(&poses)
+                    .map(|(a, pose)| {
+                        let truth = poses[0] * pose.inverse();
+                        let (angle, shift) =
+                            omniscan_core::geometry::pose_difference(&a.transform, &truth);
+                        [angle.to_degrees(), shift * 1000.0 / units]
+                    })
+                    .collect();
+                diagnostics = json!({
+                    "alignment_error_deg_mm": alignment_error,
+                    "timings": inspection.timings,
+                    "geometric_area_mm2": v.geometric_area_mm2,
+                    "visual_area_mm2": v.visual_area_mm2,
+                    "evidence_near_defect": planted.as_ref().map(|d| {
+                        let centre = poses[0] * Point3::from(d.centre);
+                        let reach = (d.size_mm + 3.0) * units / 1000.0;
+                        inspection.pairs.iter().map(|p| {
+                            let near = |e: &omniscan_inspect::differencing::Evidence| {
+                                e.points.iter().filter(|q| (*q - centre).norm() <= reach).count()
+                            };
+                            let nearest_mm = |e: &omniscan_inspect::differencing::Evidence| {
+                                e.points.iter().map(|q| (*q - centre).norm() * 1000.0 / units).fold(f64::INFINITY, f64::min)
+                            };
+                            json!({"pair": [p.a, p.b], "geometric": near(&p.geometric), "visual": near(&p.visual),
+                                   "nearest_geometric_mm": nearest_mm(&p.geometric), "nearest_visual_mm": nearest_mm(&p.visual),
+                                   "total_geometric": p.geometric.len(), "total_visual": p.visual.len()})
+                        }).collect::<Vec<_>>()
+                    }),
+                });
                 let predicted = v.defective.unwrap_or(3);
                 let is_located = match (&planted, v.defective) {
                     (Some(d), Some(p)) if p == slot => {
@@ -409,6 +456,9 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             "located": is_located,
             "seconds": seconds,
             "error": error,
+            "triplet": t,
+            "seed": seed,
+            "diagnostics": diagnostics,
         }));
         bar.inc(1);
     }

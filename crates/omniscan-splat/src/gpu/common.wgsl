@@ -29,6 +29,8 @@ const ALPHA_MAX: f32 = 0.999;
 const ALPHA_MIN: f32 = 0.00392156862745098; // 1/255
 const SIGMA_SKIP: f32 = 5.55;
 const T_STOP: f32 = 1e-4;
+// Floats per pixel of the forward image (see rasterize.wgsl).
+const PIXEL_FLOATS: u32 = 7u;
 
 // The flat index of a thread in a 256-wide dispatch folded into two dimensions.
 fn flat_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {

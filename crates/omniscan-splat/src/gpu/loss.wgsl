@@ -41,7 +41,7 @@ fn add_float(i: u32, v: f32) {
 }
 
 // ---- prepare -----------------------------------------------------------------
-// 6 floats per pixel from the forward pass: r, g, b, alpha, depth, count.
+// PIXEL_FLOATS per pixel from the forward pass: r, g, b, alpha, depth, count, median depth.
 @group(0) @binding(2) var<storage, read> image: array<f32>;
 // 5 floats per pixel: photo r, g, b; object mask; gripper mask.
 @group(0) @binding(3) var<storage, read> target_data: array<f32>;
@@ -87,7 +87,7 @@ fn prepare(
         let m = target_data[5u * i + 3u];
         let weight = weight_of(i);
         for (var c = 0u; c < 3u; c++) {
-            let x = image[6u * i + c];
+            let x = image[PIXEL_FLOATS * i + c];
             let y = target_colour(i, c);
             planes[(5u * c) * n + i] = x;
             planes[(5u * c + 1u) * n + i] = y;
@@ -100,7 +100,7 @@ fn prepare(
                 mine.z += d * d;
             }
         }
-        mine.y = weight * abs(image[6u * i + 3u] - m);
+        mine.y = weight * abs(image[PIXEL_FLOATS * i + 3u] - m);
         mine.w = select(0.0, 1.0, weight > 0.5);
     }
     partial[lid] = mine;
@@ -223,7 +223,7 @@ fn gradient(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
     let weight = weight_of(i);
     let lam = params.lambda_ssim;
     for (var c = 0u; c < 3u; c++) {
-        let x = image[6u * i + c];
+        let x = image[PIXEL_FLOATS * i + c];
         let y = target_colour(i, c);
         let l1 = (1.0 - lam) * weight * signum(x - y) / (3.0 * params.weight_sum);
         let ga = blurred_terms[(3u * c) * n + i];
@@ -231,5 +231,5 @@ fn gradient(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
         let gc = blurred_terms[(3u * c + 2u) * n + i];
         d_image[4u * i + c] = l1 - lam * (ga + 2.0 * x * gb + y * gc);
     }
-    d_image[4u * i + 3u] = params.lambda_opacity * weight * signum(image[6u * i + 3u] - m) / params.weight_sum;
+    d_image[4u * i + 3u] = params.lambda_opacity * weight * signum(image[PIXEL_FLOATS * i + 3u] - m) / params.weight_sum;
 }

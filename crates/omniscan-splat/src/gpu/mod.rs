@@ -30,6 +30,8 @@ use crate::backward::Gradients;
 use crate::raster::{Camera, Colors, Gaussians, Mode, Render, Settings, TILE, ViewGeometry};
 
 const COMMON: &str = include_str!("common.wgsl");
+/// Floats per pixel of the forward image (`PIXEL_FLOATS` in common.wgsl).
+const PIXEL_FLOATS: u64 = 7;
 const PROJECT: &str = include_str!("project.wgsl");
 const SCAN: &str = include_str!("scan.wgsl");
 const SORT: &str = include_str!("sort.wgsl");
@@ -720,7 +722,7 @@ impl GpuRenderer {
         // Intersections in depth order, then sorted (stably) by tile.
         let mut keys = self.key_sets(total as u64);
         let ranges = self.zeroed("tile ranges", 2 * tiles as u64);
-        let output = self.zeroed("image", 6 * (width * height) as u64);
+        let output = self.zeroed("image", PIXEL_FLOATS * (width * height) as u64);
         let last_contributor = self.zeroed("last contributors", (width * height) as u64);
         let mut encoder = self.device.create_command_encoder(&Default::default());
         let emit_params = self.uniform(
@@ -783,26 +785,28 @@ impl GpuRenderer {
         );
         Self::dispatch(&mut encoder, &self.rasterize, &group, (tiles_x, tiles_y));
         let bytes = if read_back {
-            self.submit_and_read(encoder, &output, 4 * 6 * (width * height) as u64)?
+            self.submit_and_read(encoder, &output, 4 * PIXEL_FLOATS * (width * height) as u64)?
         } else {
             self.queue.submit([encoder.finish()]);
             Vec::new()
         };
         let values: Vec<f32> = bytes.iter().map(|&w| f32::from_bits(w)).collect();
-        let pixels = values.len() / 6;
+        let pixels = values.len() / PIXEL_FLOATS as usize;
         let mut render = Render {
             width,
             height,
             rgb: Vec::with_capacity(pixels),
             alpha: Vec::with_capacity(pixels),
             depth: Vec::with_capacity(pixels),
+            median_depth: Vec::with_capacity(pixels),
             contributors: Vec::with_capacity(pixels),
         };
-        for p in values.chunks_exact(6) {
+        for p in values.chunks_exact(PIXEL_FLOATS as usize) {
             render.rgb.push([p[0], p[1], p[2]]);
             render.alpha.push(p[3]);
             render.depth.push(p[4]);
             render.contributors.push(p[5] as u32);
+            render.median_depth.push(p[6]);
         }
         let [_, _, sorted_index] = keys.swap_remove(current);
         Ok(GpuFrame {

@@ -8,7 +8,7 @@
 @group(0) @binding(1) var<storage, read> projected: array<f32>;
 @group(0) @binding(2) var<storage, read> sorted_index: array<u32>;
 @group(0) @binding(3) var<storage, read> ranges: array<u32>;
-// 6 floats per pixel: r, g, b, alpha, depth sum, contributors.
+// PIXEL_FLOATS per pixel: r, g, b, alpha, depth sum, contributors, median depth.
 @group(0) @binding(4) var<storage, read_write> image: array<f32>;
 // Per pixel: one past the position (in the sorted list) of its last
 // contributor, where the backward pass starts.
@@ -41,6 +41,7 @@ fn main(
     var transmittance = 1.0;
     var colour = vec3<f32>(0.0);
     var depth = 0.0;
+    var median = 0.0;
     var count = 0u;
     var last = range.x;
     var done = !inside;
@@ -77,6 +78,9 @@ fn main(
             let w = alpha * transmittance;
             colour += batch_colour[j] * w;
             depth += batch_depth[j] * w;
+            if (transmittance > 0.5 && next <= 0.5) {
+                median = batch_depth[j];
+            }
             transmittance = next;
             count++;
             last = start + j + 1u;
@@ -84,7 +88,7 @@ fn main(
         workgroupBarrier();
     }
     if (inside) {
-        let o = 6u * (py * params.width + px);
+        let o = PIXEL_FLOATS * (py * params.width + px);
         let rgb = colour + transmittance * params.background.xyz;
         image[o] = rgb.x;
         image[o + 1u] = rgb.y;
@@ -92,6 +96,7 @@ fn main(
         image[o + 3u] = 1.0 - transmittance;
         image[o + 4u] = depth;
         image[o + 5u] = f32(count);
+        image[o + 6u] = median;
         last_contributor[py * params.width + px] = last;
     }
 }

@@ -64,7 +64,7 @@ fn main(
     var da = 0.0;
     if (inside) {
         last = last_contributor[pixel];
-        t_final = 1.0 - image[6u * pixel + 3u];
+        t_final = 1.0 - image[PIXEL_FLOATS * pixel + 3u];
         dc = vec3<f32>(d_image[4u * pixel], d_image[4u * pixel + 1u], d_image[4u * pixel + 2u]);
         da = d_image[4u * pixel + 3u];
         atomicMax(&furthest, last);
