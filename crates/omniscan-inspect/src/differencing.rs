@@ -229,9 +229,11 @@ pub fn depth_evidence(
     threshold: f64,
     spacing: f64,
 ) -> Evidence {
+    /// A surface pixel's voxel, whether it differs, by how much (the depth
+    /// difference, or the threshold for a hole), and where it is.
+    type Sample = ([i64; 3], bool, f64, Point3<f64>);
     let threshold = threshold as f32;
-    // (voxel, flagged, depth difference or the threshold for a hole, point)
-    let samples: Vec<Vec<([i64; 3], bool, f64, Point3<f64>)>> = renders_a
+    let samples: Vec<Vec<Sample>> = renders_a
         .par_iter()
         .zip(renders_b)
         .zip(views)
@@ -298,7 +300,7 @@ pub fn depth_evidence(
     }
     let mut keys: Vec<&[i64; 3]> = voxels
         .iter()
-        .filter(|(_, v)| v.flagged >= 2 && 4 * v.flagged >= v.seen)
+        .filter(|(_, v)| v.flagged >= 3 && 2 * v.flagged >= v.seen)
         .map(|(k, _)| k)
         .collect();
     // Deterministic order, whatever the hash map's.

@@ -35,7 +35,12 @@ pub struct InspectSettings {
     pub colour_threshold: f64,
     /// Spacing of the surface samples, millimetres.
     pub spacing_mm: f64,
-    pub min_geometric_area_mm2: f64,
+    /// Smallest geometric region that counts, square millimetres; `None`:
+    /// a disc as wide as the threshold is deep (π·(threshold/2)², 15.9 mm²
+    /// at 4.5 mm), since a defect that deep is at least that wide. Between
+    /// good copies of the Omni-Scan models regions reach 8-17 mm² (16 good
+    /// triplets measured with `omniscan bench inspect --seed 1`).
+    pub min_geometric_area_mm2: Option<f64>,
     pub min_visual_area_mm2: f64,
     /// Indices of models known to be good; `None` = any model may be defective.
     pub references: Option<Vec<usize>>,
@@ -54,7 +59,7 @@ impl Default for InspectSettings {
             height: 120,
             colour_threshold: 0.3,
             spacing_mm: 1.0,
-            min_geometric_area_mm2: 6.0,
+            min_geometric_area_mm2: None,
             min_visual_area_mm2: 8.0,
             references: None,
             align: AlignSettings::default(),
@@ -296,7 +301,9 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
             spacing,
             units_per_metre: settings.units_per_metre,
             match_radius: 3.0 * spacing,
-            min_geometric_area_mm2: settings.min_geometric_area_mm2,
+            min_geometric_area_mm2: settings
+                .min_geometric_area_mm2
+                .unwrap_or(std::f64::consts::PI * (0.5 * settings.threshold_mm).powi(2)),
             min_visual_area_mm2: settings.min_visual_area_mm2,
         },
     );

@@ -8,8 +8,10 @@
 //!
 //! Where the paper ranks pairs by one global number, we also locate the
 //! evidence: both methods produce points on the surface (visual differences
-//! are back-projected through the rendered depth, geometric ones are surface
-//! samples), and a difference counts against a model only where that model
+//! are back-projected through the rendered median depth, geometric ones are
+//! surface samples farther than the threshold from the other model's, and
+//! pixels whose depth along the same ray differs by more than it), and a
+//! difference counts against a model only where that model
 //! disagrees with every other copy while the others agree with each other.
 //! Such points are clustered into regions; the model with significant
 //! regions is the defective one, and none is named when no model has any.

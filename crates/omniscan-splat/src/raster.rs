@@ -452,7 +452,7 @@ pub struct Render<F> {
 type Packed<F> = ([F; 2], [F; 3], F, [F; 3], F, [F; 4]);
 
 /// Side of the quarter tiles that cull Gaussians before compositing.
-const SUBTILE: u32 = TILE / 2;
+const SUBTILE: u32 = TILE / 4;
 
 /// One pixel's result: index, colour, alpha, depth sum, median depth, contributors.
 type PixelResult<F> = (usize, [F; 3], F, F, F, u32);
@@ -492,7 +492,9 @@ pub fn rasterize<F: Real>(
             // Each quarter of the tile composites only the Gaussians whose
             // reach touches it: same order, same image, fewer misses.
             let mut local: Vec<Packed<F>> = Vec::with_capacity(packed.len());
-            for (qx, qy) in [(0, 0), (SUBTILE, 0), (0, SUBTILE), (SUBTILE, SUBTILE)] {
+            for (qx, qy) in (0..TILE / SUBTILE)
+                .flat_map(|y| (0..TILE / SUBTILE).map(move |x| (x * SUBTILE, y * SUBTILE)))
+            {
                 let (x0, y0) = (ox + qx, oy + qy);
                 let (x1, y1) = ((x0 + SUBTILE).min(width), (y0 + SUBTILE).min(height));
                 if x0 >= x1 || y0 >= y1 {

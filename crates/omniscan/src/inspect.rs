@@ -387,6 +387,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                     .collect();
                 diagnostics = json!({
                     "alignment_error_deg_mm": alignment_error,
+                    "regions": v.regions.iter().take(8).collect::<Vec<_>>(),
                     "timings": inspection.timings,
                     "geometric_area_mm2": v.geometric_area_mm2,
                     "visual_area_mm2": v.visual_area_mm2,
