@@ -509,9 +509,9 @@ fn add_decal(out: &mut Splats, model: &Splats, frame: &SurfaceFrame, mark: &Deca
             }
             let on_plane =
                 world_to_camera * (frame.centre + frame.tangent * u + frame.bitangent * v);
-            let k_ = &view.intrinsics;
-            let x = (k_.fx * on_plane.x / on_plane.z + k_.cx).floor();
-            let y = (k_.fy * on_plane.y / on_plane.z + k_.cy).floor();
+            let intrinsics = &view.intrinsics;
+            let x = (intrinsics.fx * on_plane.x / on_plane.z + intrinsics.cx).floor();
+            let y = (intrinsics.fy * on_plane.y / on_plane.z + intrinsics.cy).floor();
             if x < 0.0 || y < 0.0 || x >= pixels as f64 || y >= pixels as f64 {
                 continue;
             }

@@ -66,7 +66,8 @@ impl Renderer {
         matches!(self, Renderer::Gpu(_))
     }
 
-    /// Renders one view (colour with background, alpha, depth sum, contributors).
+    /// Renders one view (colour with background, alpha, depth sum, median
+    /// depth, contributors).
     pub fn render(
         &self,
         gaussians: &Gaussians<f32>,

@@ -36,3 +36,58 @@ const PIXEL_FLOATS: u32 = 7u;
 fn flat_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
     return gid.x + gid.y * groups.x * 256u;
 }
+
+// The index of a workgroup in a dispatch folded into two dimensions.
+fn workgroup_index(wid: vec3<u32>, groups: vec3<u32>) -> u32 {
+    return wid.x + wid.y * groups.x;
+}
+
+// Real SH constants up to degree 3 (the CPU reference's `sh.rs`).
+const SH_C0: f32 = 0.28209479177387814;
+const SH_C1: f32 = 0.4886025119029199;
+const SH_C2_0: f32 = 1.0925484305920792;
+const SH_C2_1: f32 = -1.0925484305920792;
+const SH_C2_2: f32 = 0.31539156525252005;
+const SH_C2_3: f32 = -1.0925484305920792;
+const SH_C2_4: f32 = 0.5462742152960396;
+const SH_C3_0: f32 = -0.5900435899266435;
+const SH_C3_1: f32 = 2.890611442640554;
+const SH_C3_2: f32 = -0.4570457994644658;
+const SH_C3_3: f32 = 0.3731763325901154;
+const SH_C3_4: f32 = -0.4570457994644658;
+const SH_C3_5: f32 = 1.445305721320277;
+const SH_C3_6: f32 = -0.5900435899266435;
+
+// The first `k` SH basis functions at unit direction `dir` (the rest 0).
+fn sh_basis(dir: vec3<f32>, k: u32) -> array<f32, 16> {
+    var b: array<f32, 16>;
+    b[0] = SH_C0;
+    let x = dir.x;
+    let y = dir.y;
+    let z = dir.z;
+    if (k > 1u) {
+        b[1] = -SH_C1 * y;
+        b[2] = SH_C1 * z;
+        b[3] = -SH_C1 * x;
+    }
+    let xx = x * x;
+    let yy = y * y;
+    let zz = z * z;
+    if (k > 4u) {
+        b[4] = SH_C2_0 * x * y;
+        b[5] = SH_C2_1 * y * z;
+        b[6] = SH_C2_2 * (2.0 * zz - xx - yy);
+        b[7] = SH_C2_3 * x * z;
+        b[8] = SH_C2_4 * (xx - yy);
+    }
+    if (k > 9u) {
+        b[9] = SH_C3_0 * y * (3.0 * xx - yy);
+        b[10] = SH_C3_1 * x * y * z;
+        b[11] = SH_C3_2 * y * (4.0 * zz - xx - yy);
+        b[12] = SH_C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy);
+        b[13] = SH_C3_4 * x * (4.0 * zz - xx - yy);
+        b[14] = SH_C3_5 * z * (xx - yy);
+        b[15] = SH_C3_6 * x * (xx - 3.0 * yy);
+    }
+    return b;
+}

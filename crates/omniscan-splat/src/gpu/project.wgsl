@@ -22,41 +22,10 @@
 const RADIUS_SIGMA: f32 = 3.33;
 const TILE: f32 = 16.0;
 
-const C0: f32 = 0.28209479177387814;
-const C1: f32 = 0.4886025119029199;
-
 fn sh_colour(g: u32, dir: vec3<f32>) -> vec3<f32> {
     let k = cam.counts.y;
     let base = g * cam.counts2.y * 3u;
-    var b: array<f32, 16>;
-    b[0] = C0;
-    let x = dir.x;
-    let y = dir.y;
-    let z = dir.z;
-    if (k > 1u) {
-        b[1] = -C1 * y;
-        b[2] = C1 * z;
-        b[3] = -C1 * x;
-    }
-    let xx = x * x;
-    let yy = y * y;
-    let zz = z * z;
-    if (k > 4u) {
-        b[4] = 1.0925484305920792 * x * y;
-        b[5] = -1.0925484305920792 * y * z;
-        b[6] = 0.31539156525252005 * (2.0 * zz - xx - yy);
-        b[7] = -1.0925484305920792 * x * z;
-        b[8] = 0.5462742152960396 * (xx - yy);
-    }
-    if (k > 9u) {
-        b[9] = -0.5900435899266435 * y * (3.0 * xx - yy);
-        b[10] = 2.890611442640554 * x * y * z;
-        b[11] = -0.4570457994644658 * y * (4.0 * zz - xx - yy);
-        b[12] = 0.3731763325901154 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy);
-        b[13] = -0.4570457994644658 * x * (4.0 * zz - xx - yy);
-        b[14] = 1.445305721320277 * z * (xx - yy);
-        b[15] = -0.5900435899266435 * x * (xx - 3.0 * yy);
-    }
+    let b = sh_basis(dir, k);
     var c = vec3<f32>(0.0);
     for (var i = 0u; i < k; i++) {
         let o = base + 3u * i;

@@ -21,21 +21,6 @@
 @group(0) @binding(11) var<storage, read_write> d_opacities: array<f32>;
 @group(0) @binding(12) var<storage, read_write> d_coeffs: array<f32>;
 
-const C0: f32 = 0.28209479177387814;
-const C1: f32 = 0.4886025119029199;
-const C2_0: f32 = 1.0925484305920792;
-const C2_1: f32 = -1.0925484305920792;
-const C2_2: f32 = 0.31539156525252005;
-const C2_3: f32 = -1.0925484305920792;
-const C2_4: f32 = 0.5462742152960396;
-const C3_0: f32 = -0.5900435899266435;
-const C3_1: f32 = 2.890611442640554;
-const C3_2: f32 = -0.4570457994644658;
-const C3_3: f32 = 0.3731763325901154;
-const C3_4: f32 = -0.4570457994644658;
-const C3_5: f32 = 1.445305721320277;
-const C3_6: f32 = -0.5900435899266435;
-
 fn zero_outputs(g: u32, k: u32) {
     for (var a = 0u; a < 3u; a++) {
         d_means[3u * g + a] = 0.0;
@@ -112,45 +97,30 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         let xx = dx * dx;
         let yy = dy * dy;
         let zz = dz * dz;
-        var b: array<f32, 16>;
+        let b = sh_basis(dir, k);
+        // The basis functions' gradients with respect to the direction.
         var db: array<vec3<f32>, 16>;
-        b[0] = C0;
         db[0] = vec3<f32>(0.0);
         if (k > 1u) {
-            b[1] = -C1 * dy;
-            b[2] = C1 * dz;
-            b[3] = -C1 * dx;
-            db[1] = vec3<f32>(0.0, -C1, 0.0);
-            db[2] = vec3<f32>(0.0, 0.0, C1);
-            db[3] = vec3<f32>(-C1, 0.0, 0.0);
+            db[1] = vec3<f32>(0.0, -SH_C1, 0.0);
+            db[2] = vec3<f32>(0.0, 0.0, SH_C1);
+            db[3] = vec3<f32>(-SH_C1, 0.0, 0.0);
         }
         if (k > 4u) {
-            b[4] = C2_0 * dx * dy;
-            b[5] = C2_1 * dy * dz;
-            b[6] = C2_2 * (2.0 * zz - xx - yy);
-            b[7] = C2_3 * dx * dz;
-            b[8] = C2_4 * (xx - yy);
-            db[4] = vec3<f32>(C2_0 * dy, C2_0 * dx, 0.0);
-            db[5] = vec3<f32>(0.0, C2_1 * dz, C2_1 * dy);
-            db[6] = vec3<f32>(-2.0 * C2_2 * dx, -2.0 * C2_2 * dy, 4.0 * C2_2 * dz);
-            db[7] = vec3<f32>(C2_3 * dz, 0.0, C2_3 * dx);
-            db[8] = vec3<f32>(2.0 * C2_4 * dx, -2.0 * C2_4 * dy, 0.0);
+            db[4] = vec3<f32>(SH_C2_0 * dy, SH_C2_0 * dx, 0.0);
+            db[5] = vec3<f32>(0.0, SH_C2_1 * dz, SH_C2_1 * dy);
+            db[6] = vec3<f32>(-2.0 * SH_C2_2 * dx, -2.0 * SH_C2_2 * dy, 4.0 * SH_C2_2 * dz);
+            db[7] = vec3<f32>(SH_C2_3 * dz, 0.0, SH_C2_3 * dx);
+            db[8] = vec3<f32>(2.0 * SH_C2_4 * dx, -2.0 * SH_C2_4 * dy, 0.0);
         }
         if (k > 9u) {
-            b[9] = C3_0 * dy * (3.0 * xx - yy);
-            b[10] = C3_1 * dx * dy * dz;
-            b[11] = C3_2 * dy * (4.0 * zz - xx - yy);
-            b[12] = C3_3 * dz * (2.0 * zz - 3.0 * xx - 3.0 * yy);
-            b[13] = C3_4 * dx * (4.0 * zz - xx - yy);
-            b[14] = C3_5 * dz * (xx - yy);
-            b[15] = C3_6 * dx * (xx - 3.0 * yy);
-            db[9] = vec3<f32>(6.0 * C3_0 * dx * dy, C3_0 * (3.0 * xx - 3.0 * yy), 0.0);
-            db[10] = vec3<f32>(C3_1 * dy * dz, C3_1 * dx * dz, C3_1 * dx * dy);
-            db[11] = vec3<f32>(-2.0 * C3_2 * dx * dy, C3_2 * (4.0 * zz - xx - 3.0 * yy), 8.0 * C3_2 * dy * dz);
-            db[12] = vec3<f32>(-6.0 * C3_3 * dx * dz, -6.0 * C3_3 * dy * dz, C3_3 * (6.0 * zz - 3.0 * xx - 3.0 * yy));
-            db[13] = vec3<f32>(C3_4 * (4.0 * zz - 3.0 * xx - yy), -2.0 * C3_4 * dx * dy, 8.0 * C3_4 * dx * dz);
-            db[14] = vec3<f32>(2.0 * C3_5 * dx * dz, -2.0 * C3_5 * dy * dz, C3_5 * (xx - yy));
-            db[15] = vec3<f32>(C3_6 * (3.0 * xx - 3.0 * yy), -6.0 * C3_6 * dx * dy, 0.0);
+            db[9] = vec3<f32>(6.0 * SH_C3_0 * dx * dy, SH_C3_0 * (3.0 * xx - 3.0 * yy), 0.0);
+            db[10] = vec3<f32>(SH_C3_1 * dy * dz, SH_C3_1 * dx * dz, SH_C3_1 * dx * dy);
+            db[11] = vec3<f32>(-2.0 * SH_C3_2 * dx * dy, SH_C3_2 * (4.0 * zz - xx - 3.0 * yy), 8.0 * SH_C3_2 * dy * dz);
+            db[12] = vec3<f32>(-6.0 * SH_C3_3 * dx * dz, -6.0 * SH_C3_3 * dy * dz, SH_C3_3 * (6.0 * zz - 3.0 * xx - 3.0 * yy));
+            db[13] = vec3<f32>(SH_C3_4 * (4.0 * zz - 3.0 * xx - yy), -2.0 * SH_C3_4 * dx * dy, 8.0 * SH_C3_4 * dx * dz);
+            db[14] = vec3<f32>(2.0 * SH_C3_5 * dx * dz, -2.0 * SH_C3_5 * dy * dz, SH_C3_5 * (xx - yy));
+            db[15] = vec3<f32>(SH_C3_6 * (3.0 * xx - 3.0 * yy), -6.0 * SH_C3_6 * dx * dy, 0.0);
         }
         let base = 3u * stride * g;
         var raw = vec3<f32>(0.0);

@@ -13,17 +13,13 @@ struct Params {
 
 var<workgroup> partial: array<u32, 256>;
 
-fn block_index(wid: vec3<u32>, groups: vec3<u32>) -> u32 {
-    return wid.x + wid.y * groups.x;
-}
-
 @compute @workgroup_size(256)
 fn scan_blocks(
     @builtin(workgroup_id) wid: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let block = block_index(wid, groups);
+    let block = workgroup_index(wid, groups);
     let base = block * 1024u + lid * 4u;
     var v: array<u32, 4>;
     var sum = 0u;
@@ -63,7 +59,7 @@ fn add_block_offsets(
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let block = block_index(wid, groups);
+    let block = workgroup_index(wid, groups);
     let add = block_sums[block];
     let base = block * 1024u + lid * 4u;
     for (var i = 0u; i < 4u; i++) {

@@ -100,10 +100,6 @@ fn digit_of(k: u32) -> u32 {
     return (in_depth[k] >> params.shift) & 15u;
 }
 
-fn block_of(wid: vec3<u32>, groups: vec3<u32>) -> u32 {
-    return wid.x + wid.y * groups.x;
-}
-
 // histogram[digit * blocks + block] = elements of the block with that digit.
 @compute @workgroup_size(256)
 fn radix_histogram(
@@ -111,7 +107,7 @@ fn radix_histogram(
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let block = block_of(wid, groups);
+    let block = workgroup_index(wid, groups);
     if (lid < 16u) {
         atomicStore(&counts[lid], 0u);
     }
@@ -135,7 +131,7 @@ fn radix_scatter(
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let block = block_of(wid, groups);
+    let block = workgroup_index(wid, groups);
     let k = block * 256u + lid;
     let inside = k < params.len;
     var d = 16u;
