@@ -14,7 +14,7 @@ use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 
 use crate::PointCloud;
-use crate::neighbors::Neighbors;
+use crate::grid::hybrid_search;
 
 /// One 33-bin histogram per point.
 pub type Fpfh = [f32; 33];
@@ -57,12 +57,8 @@ fn bin(value: f64, lo: f64, hi: f64) -> usize {
 /// FPFH features over at most `max_nn` neighbours within `radius`. The cloud
 /// needs (consistently oriented) normals.
 pub fn compute_fpfh(cloud: &PointCloud, radius: f64, max_nn: usize) -> Vec<Fpfh> {
-    let nn = Neighbors::new(&cloud.points);
-    let neighbourhoods: Vec<Vec<(usize, f64)>> = cloud
-        .points
-        .par_iter()
-        .map(|p| nn.hybrid(p, radius, max_nn))
-        .collect();
+    let neighbourhoods: Vec<Vec<(usize, f64)>> =
+        hybrid_search(&cloud.points, radius, max_nn, |_, n| n.to_vec());
     let spfh: Vec<[f64; 33]> = (0..cloud.len())
         .into_par_iter()
         .map(|i| {

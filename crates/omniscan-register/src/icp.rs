@@ -25,6 +25,9 @@ use nalgebra::{
 use rayon::prelude::*;
 use serde::Serialize;
 
+use std::borrow::Cow;
+
+use crate::grid::Grid;
 use crate::neighbors::Neighbors;
 use crate::{PointCloud, RegisterError};
 use omniscan_core::Pose;
@@ -131,36 +134,48 @@ impl Registration {
 
 /// A target cloud prepared for repeated registration.
 ///
-/// Besides a k-d tree it keeps, once ICP asks for it, the 16 nearest
-/// neighbours of every target point. ICP's correspondence step then starts
-/// each query at the previous iteration's match and walks this graph
-/// downhill; the answer is exact when the distance found is under half the
-/// radius of the point's neighbour list (every closer point would have to be
-/// in that list), and otherwise the query falls back to the k-d tree. Since
-/// ICP moves the source a little per iteration, nearly every query is
-/// answered from a few dozen distances instead of a tree search. A lower
+/// Besides a k-d tree it keeps, once ICP asks for them, a grid of cells
+/// twice the correspondence distance wide ([`Grid`]: fresh nearest-point
+/// queries, colored ICP's gradients) and the 16 nearest neighbours of every
+/// target point. ICP's correspondence step starts each query at the previous
+/// iteration's match and walks this graph downhill; the answer is exact when
+/// the distance found is under half the radius of the point's neighbour list
+/// (every closer point would have to be in that list), and otherwise the
+/// query asks the grid. Since ICP moves the source a little per iteration,
+/// nearly every query is answered from a few dozen distances. A lower
 /// bound on each source point's nearest distance (last distance minus how
 /// far the point moved) skips points that cannot have a correspondence.
 pub struct Target<'a> {
     pub cloud: &'a PointCloud,
     pub neighbors: Neighbors,
+    grid: std::sync::OnceLock<Grid>,
     graph: std::sync::OnceLock<NeighborGraph>,
 }
 
 /// The `GRAPH_K` nearest neighbours of every point (itself included, nearest
-/// first) with their coordinates stored inline, so a walk reads each list
-/// from one contiguous block, and the squared distance to the farthest of them.
+/// first), each list with its coordinates inline in f32, coordinates apart
+/// so a walk step measures all of them at once, and the squared distance to
+/// the farthest of them.
 struct NeighborGraph {
-    lists: Vec<GraphEntry>,
-    reach2: Vec<f64>,
+    lists: Vec<NeighborList>,
 }
 
 #[derive(Clone, Copy)]
-struct GraphEntry {
-    id: u32,
-    x: f32,
-    y: f32,
-    z: f32,
+struct NeighborList {
+    x: [f32; GRAPH_K],
+    y: [f32; GRAPH_K],
+    z: [f32; GRAPH_K],
+    ids: [u32; GRAPH_K],
+    reach2: f64,
+}
+
+impl NeighborList {
+    fn distances2(&self, q: [f32; 3]) -> [f32; GRAPH_K] {
+        std::array::from_fn(|k| {
+            let (dx, dy, dz) = (self.x[k] - q[0], self.y[k] - q[1], self.z[k] - q[2]);
+            dx * dx + dy * dy + dz * dz
+        })
+    }
 }
 
 const GRAPH_K: usize = 16;
@@ -170,92 +185,121 @@ impl<'a> Target<'a> {
         Target {
             cloud,
             neighbors: Neighbors::new(&cloud.points),
+            grid: std::sync::OnceLock::new(),
             graph: std::sync::OnceLock::new(),
         }
     }
 
-    fn graph(&self) -> &NeighborGraph {
+    /// A grid with cells at least `cell` wide: the kept one, made by the
+    /// first call, unless it is too narrow or needlessly wide for this one.
+    fn grid(&self, cell: f64) -> Cow<'_, Grid> {
+        let kept = self
+            .grid
+            .get_or_init(|| Grid::new(&self.cloud.points, cell));
+        if kept.cell() >= cell && kept.cell() <= 4.0 * cell {
+            Cow::Borrowed(kept)
+        } else {
+            Cow::Owned(Grid::new(&self.cloud.points, cell))
+        }
+    }
+
+    fn graph(&self, grid: &Grid) -> &NeighborGraph {
         self.graph.get_or_init(|| {
             let k = GRAPH_K.min(self.cloud.len());
-            let rows: Vec<(Vec<u32>, f64)> = self
-                .neighbors
-                .knn_batch(&self.cloud.points, k)
-                .into_iter()
-                .map(|r| {
-                    // With every point in the list, nothing lies outside it.
-                    let reach = if k < GRAPH_K {
-                        f64::INFINITY
-                    } else {
-                        r.last().map_or(0.0, |x| x.1)
-                    };
-                    let mut ids: Vec<u32> = r.iter().map(|x| x.0 as u32).collect();
-                    // Keep the point itself first so a walk can stay where it is.
-                    ids.resize(GRAPH_K, ids.last().copied().unwrap_or(0));
-                    (ids, reach)
-                })
-                .collect();
-            let mut lists = Vec::with_capacity(rows.len() * GRAPH_K);
-            let mut reach2 = Vec::with_capacity(rows.len());
             let pts = &self.cloud.points;
-            for (ids, r) in rows {
-                lists.extend(ids.into_iter().map(|id| {
-                    let p = pts[id as usize];
-                    GraphEntry {
-                        id,
-                        x: p.x as f32,
-                        y: p.y as f32,
-                        z: p.z as f32,
+            let lists = grid.knn_map(k, |i, found| {
+                let tree;
+                let found = match found {
+                    Some(found) => found,
+                    None => {
+                        tree = self.neighbors.knn(&pts[i], k);
+                        &tree[..]
                     }
-                }));
-                reach2.push(r);
-            }
-            NeighborGraph { lists, reach2 }
+                };
+                // With every point in the list, nothing lies outside it.
+                let reach2 = if k < GRAPH_K {
+                    f64::INFINITY
+                } else {
+                    found.last().map_or(0.0, |x| x.1)
+                };
+                // Short lists repeat their last entry; the point itself stays
+                // first so a walk can stay where it is.
+                let id = |m: usize| {
+                    found
+                        .get(m)
+                        .or(found.last())
+                        .map_or(i as u32, |x| x.0 as u32)
+                };
+                let ids: [u32; GRAPH_K] = std::array::from_fn(id);
+                let coordinate = |a: usize| ids.map(|id| pts[id as usize][a] as f32);
+                NeighborList {
+                    x: coordinate(0),
+                    y: coordinate(1),
+                    z: coordinate(2),
+                    ids,
+                    reach2,
+                }
+            });
+            NeighborGraph { lists }
         })
     }
 
     /// Searches the nearest target point to `q` from the target point
     /// `start` and returns a certificate for it (see [`Hint`]).
-    fn search(&self, q: &Point3<f64>, start: u32) -> Hint {
-        let g = self.graph();
-        let pts = &self.cloud.points;
+    fn search(&self, grid: &Grid, q: &Point3<f64>, start: u32) -> Hint {
+        let g = self.graph(grid);
         let mut cur = start as usize;
         // The walk runs in f32 on the inline copies...
-        let (qx, qy, qz) = (q.x as f32, q.y as f32, q.z as f32);
+        let qf = [q.x as f32, q.y as f32, q.z as f32];
         let mut best = f32::INFINITY;
-        loop {
+        let d = loop {
+            let list = &g.lists[cur];
+            let d = list.distances2(qf);
             let mut next = cur;
-            for e in &g.lists[cur * GRAPH_K..(cur + 1) * GRAPH_K] {
-                let (dx, dy, dz) = (e.x - qx, e.y - qy, e.z - qz);
-                let d = dx * dx + dy * dy + dz * dz;
-                if d < best {
-                    best = d;
-                    next = e.id as usize;
+            for (k, &dk) in d.iter().enumerate() {
+                if dk < best {
+                    best = dk;
+                    next = list.ids[k] as usize;
                 }
             }
             if next == cur {
-                break;
+                break d;
             }
             cur = next;
-        }
-        // ...and the final list is settled in f64: nearest and second nearest.
-        let list = &g.lists[cur * GRAPH_K..(cur + 1) * GRAPH_K];
-        let (mut d1, mut d2, mut nearest) = (f64::INFINITY, f64::INFINITY, cur);
-        for e in list {
-            let d = (pts[e.id as usize] - q).norm_squared();
-            if d < d1 {
-                d2 = d1;
-                d1 = d;
-                nearest = e.id as usize;
-            } else if d < d2 && e.id as usize != nearest {
-                d2 = d;
+        };
+        // ...and settles in f64 only what f32 rounding could have ordered
+        // wrongly: every entry within `tolerance` of the nearest.
+        let list = &g.lists[cur];
+        let scale = q.x.abs().max(q.y.abs()).max(q.z.abs()) as f32 + best.sqrt();
+        let tolerance = 8.0 * f32::EPSILON * scale;
+        let near2 = (best.sqrt() + 2.0 * tolerance).powi(2);
+        let pts = &self.cloud.points;
+        let (mut d1, mut nearest) = (f64::INFINITY, usize::MAX);
+        let mut d2 = f64::INFINITY;
+        let mut far2 = f32::INFINITY;
+        for (k, &dk) in d.iter().enumerate() {
+            let id = list.ids[k] as usize;
+            if dk > near2 {
+                far2 = far2.min(dk);
+            } else if id != nearest {
+                let exact = (pts[id] - q).norm_squared();
+                if exact < d1 {
+                    d2 = d2.min(d1);
+                    d1 = exact;
+                    nearest = id;
+                } else {
+                    d2 = d2.min(exact);
+                }
             }
         }
-        let (d1, d2) = (d1.sqrt(), d2.sqrt());
+        // For the second nearest a lower bound is enough.
+        let far = (far2.sqrt() - tolerance).max(0.0) as f64;
+        let (d1, d2) = (d1.sqrt(), d2.sqrt().min(far));
         // Every point within reach − d1 of q is in the list, so the list's
         // nearest is the true nearest if 2·d1 < reach, and the second nearest
         // is at least min(d2, reach − d1) away.
-        let reach = g.reach2[cur].sqrt();
-        if 2.0 * d1 < reach {
+        let reach = list.reach2.sqrt();
+        if nearest != usize::MAX && 2.0 * d1 < reach {
             return Hint {
                 target: nearest as u32,
                 nearest: d1,
@@ -263,7 +307,7 @@ impl<'a> Target<'a> {
                 moved: 0.0,
             };
         }
-        Hint::from_tree(self, q)
+        Hint::fresh(grid, q)
     }
 }
 
@@ -284,23 +328,27 @@ struct Hint {
     moved: f64,
 }
 
+/// The target index of a hint that found no target point within the grid's reach.
+const NO_TARGET: u32 = u32::MAX;
+
 impl Hint {
-    /// A fresh certificate from the two nearest target points (k-d tree).
-    fn from_tree(target: &Target, q: &Point3<f64>) -> Hint {
-        let r = target.neighbors.knn(q, 2);
-        match (r.first(), r.get(1)) {
-            (Some(&(j, e1)), second) => {
-                let e2 = second.map_or(f64::INFINITY, |s| s.1.sqrt());
-                Hint {
-                    target: j as u32,
-                    nearest: e1.sqrt(),
-                    gap: e2 - e1.sqrt(),
-                    moved: 0.0,
-                }
-            }
-            _ => Hint {
-                target: 0,
-                nearest: f64::INFINITY,
+    /// A fresh certificate from the two nearest target points within the
+    /// grid's cell size; with none there, the nearest is at least that far.
+    fn fresh(grid: &Grid, q: &Point3<f64>) -> Hint {
+        Hint::from_nearest_two(grid.nearest_two(q, grid.cell()), grid.cell())
+    }
+
+    fn from_nearest_two(nearest: (Option<(usize, f64)>, f64), reach: f64) -> Hint {
+        match nearest {
+            (Some((j, e1)), e2) => Hint {
+                target: j as u32,
+                nearest: e1.sqrt(),
+                gap: e2.sqrt().min(reach) - e1.sqrt(),
+                moved: 0.0,
+            },
+            (None, _) => Hint {
+                target: NO_TARGET,
+                nearest: reach,
                 gap: 0.0,
                 moved: 0.0,
             },
@@ -314,15 +362,18 @@ impl Hint {
 fn correspondences(
     points: &[Point3<f64>],
     target: &Target,
+    grid: &Grid,
     max_distance: f64,
     hints: &mut Vec<Hint>,
     moved_by: &[f64],
 ) -> Vec<(usize, usize, f64)> {
     if hints.len() != points.len() {
         // First call: k-d tree queries seed the hints.
-        *hints = points
-            .par_iter()
-            .map(|p| Hint::from_tree(target, p))
+        let reach = grid.cell();
+        *hints = grid
+            .nearest_two_all(points, reach)
+            .into_iter()
+            .map(|nearest| Hint::from_nearest_two(nearest, reach))
             .collect();
         return hints
             .iter()
@@ -349,14 +400,22 @@ fn correspondences(
                     continue;
                 }
                 if h.gap <= 2.0 * h.moved {
-                    let mut start = h.target;
-                    if let Some(l) = last
-                        && (cloud.points[l as usize] - p).norm_squared()
-                            < (cloud.points[start as usize] - p).norm_squared()
-                    {
-                        start = l;
-                    }
-                    *h = target.search(p, start);
+                    let distance2 = |t: u32| {
+                        (t != NO_TARGET).then(|| (cloud.points[t as usize] - p).norm_squared())
+                    };
+                    let start = match (distance2(h.target), last.and_then(distance2)) {
+                        (Some(own), Some(previous)) if previous < own => last,
+                        (Some(_), _) => Some(h.target),
+                        (None, Some(_)) => last,
+                        (None, None) => None,
+                    };
+                    *h = match start {
+                        Some(start) => target.search(grid, p, start),
+                        None => Hint::fresh(grid, p),
+                    };
+                }
+                if h.target == NO_TARGET {
+                    continue;
                 }
                 last = Some(h.target);
                 let j = h.target as usize;
@@ -440,29 +499,51 @@ fn gauss_newton_step(jtj: &Matrix6<f64>, jtr: &Vector6<f64>) -> Pose {
 }
 
 /// Accumulates JᵀWJ and JᵀWr over chunks of correspondences, in order.
-fn accumulate<F>(corr: &[(usize, usize, f64)], rows: F) -> (Matrix6<f64>, Vector6<f64>)
+fn accumulate<const N: usize, F>(
+    corr: &[(usize, usize, f64)],
+    rows: F,
+) -> (Matrix6<f64>, Vector6<f64>)
 where
-    F: Fn(usize, usize, &mut dyn FnMut(Vector6<f64>, f64)) + Sync,
+    F: Fn(usize, usize) -> [(Vector6<f64>, f64); N] + Sync,
 {
-    let parts: Vec<(Matrix6<f64>, Vector6<f64>)> = corr
+    // JᵀJ is symmetric: sum its upper triangle (21 entries) and mirror it.
+    let parts: Vec<([f64; 21], Vector6<f64>)> = corr
         .par_chunks(CHUNK)
         .map(|chunk| {
-            let mut jtj = Matrix6::zeros();
+            let mut upper = [0.0; 21];
             let mut jtr = Vector6::zeros();
             for &(i, j, _) in chunk {
-                rows(i, j, &mut |jac, r| {
-                    jtj += jac * jac.transpose();
+                for (jac, r) in rows(i, j) {
+                    let mut k = 0;
+                    for a in 0..6 {
+                        for b in a..6 {
+                            upper[k] += jac[a] * jac[b];
+                            k += 1;
+                        }
+                    }
                     jtr += jac * r;
-                });
+                }
             }
-            (jtj, jtr)
+            (upper, jtr)
         })
         .collect();
-    parts
-        .into_iter()
-        .fold((Matrix6::zeros(), Vector6::zeros()), |(a, b), (c, d)| {
-            (a + c, b + d)
-        })
+    let (upper, jtr) =
+        parts
+            .into_iter()
+            .fold(([0.0; 21], Vector6::zeros()), |(mut a, b), (c, d)| {
+                a.iter_mut().zip(c).for_each(|(x, y)| *x += y);
+                (a, b + d)
+            });
+    let mut jtj = Matrix6::zeros();
+    let mut k = 0;
+    for a in 0..6 {
+        for b in a..6 {
+            jtj[(a, b)] = upper[k];
+            jtj[(b, a)] = upper[k];
+            k += 1;
+        }
+    }
+    (jtj, jtr)
 }
 
 /// Closed-form rigid transform minimising Σ‖q − (R p + t)‖² (Kabsch).
@@ -495,13 +576,12 @@ pub fn kabsch(pairs: &[(Point3<f64>, Point3<f64>)]) -> Pose {
 /// than four neighbours).
 pub fn color_gradients(target: &Target, max_distance: f64) -> Vec<Vector3<f64>> {
     let cloud = target.cloud;
-    (0..cloud.len())
-        .into_par_iter()
-        .map(|i| {
+    target
+        .grid(2.0 * max_distance)
+        .hybrid_map(2.0 * max_distance, 30, |i, nbrs| {
             let p = cloud.points[i];
             let n = cloud.normals[i];
             let it = cloud.intensity(i);
-            let nbrs = target.neighbors.hybrid(&p, 2.0 * max_distance, 30);
             let nn = nbrs.len();
             if nn < 4 {
                 return Vector3::zeros();
@@ -522,7 +602,6 @@ pub fn color_gradients(target: &Target, max_distance: f64) -> Vec<Vector3<f64>> 
                 None => Vector3::zeros(),
             }
         })
-        .collect()
 }
 
 /// Runs ICP from `init`. Point-to-plane and colored ICP need target normals;
@@ -570,7 +649,8 @@ pub fn icp(
     let mut transformation = *init;
     let mut moved: Vec<Point3<f64>> = source.points.iter().map(|p| transformation * p).collect();
     let mut hints = Vec::new();
-    let mut corr = correspondences(&moved, target, max_distance, &mut hints, &[]);
+    let grid = target.grid(2.0 * max_distance);
+    let mut corr = correspondences(&moved, target, &grid, max_distance, &mut hints, &[]);
     let mut moved_by = vec![0.0; moved.len()];
     let (mut fitness, mut rmse) = score(source.len(), &corr);
     let mut iterations = 0;
@@ -584,38 +664,39 @@ pub fn icp(
                 kabsch(&pairs)
             }
             Estimator::PointToPlane => {
-                let (jtj, jtr) = accumulate(&corr, |i, j, emit| {
+                let (jtj, jtr) = accumulate(&corr, |i, j| {
                     let (p, q, n) = (moved[i], tc.points[j], tc.normals[j]);
                     let r = (p - q).dot(&n);
                     let w = kernel.weight(r).sqrt();
                     let c = p.coords.cross(&n);
-                    emit(Vector6::new(c.x, c.y, c.z, n.x, n.y, n.z) * w, r * w);
+                    [(Vector6::new(c.x, c.y, c.z, n.x, n.y, n.z) * w, r * w)]
                 });
                 gauss_newton_step(&jtj, &jtr)
             }
             Estimator::Colored { lambda_geometric } => {
                 let (sg, sc) = (lambda_geometric.sqrt(), (1.0 - lambda_geometric).sqrt());
-                let (jtj, jtr) = accumulate(&corr, |i, j, emit| {
+                let (jtj, jtr) = accumulate(&corr, |i, j| {
                     let (s, q, n) = (moved[i], tc.points[j], tc.normals[j]);
                     let d = gradients[j];
                     let rg = (s - q).dot(&n);
                     let wg = kernel.weight(rg).sqrt();
                     let c = s.coords.cross(&n);
-                    emit(
+                    let geometric = (
                         Vector6::new(c.x, c.y, c.z, n.x, n.y, n.z) * (sg * wg),
                         rg * sg * wg,
                     );
                     let projected = s - n * rg;
                     let predicted = tc.intensity(j) + d.dot(&(projected - q));
                     let rc = source.intensity(i) - predicted;
-                    let m = Matrix3::identity() - n * n.transpose();
-                    let dm = -(m * d);
+                    // −(I − n nᵀ)·d: the gradient's part in the tangent plane, negated.
+                    let dm = n * n.dot(&d) - d;
                     let wc = kernel.weight(rc).sqrt();
                     let c = s.coords.cross(&dm);
-                    emit(
+                    let photometric = (
                         Vector6::new(c.x, c.y, c.z, dm.x, dm.y, dm.z) * (sc * wc),
                         rc * sc * wc,
                     );
+                    [geometric, photometric]
                 });
                 gauss_newton_step(&jtj, &jtr)
             }
@@ -631,7 +712,7 @@ pub fn icp(
                 *m = next;
             });
         iterations += 1;
-        corr = correspondences(&moved, target, max_distance, &mut hints, &moved_by);
+        corr = correspondences(&moved, target, &grid, max_distance, &mut hints, &moved_by);
         let (f, r) = score(source.len(), &corr);
         let converged = (fitness - f).abs() < criteria.relative_fitness
             && (rmse - r).abs() < criteria.relative_rmse;

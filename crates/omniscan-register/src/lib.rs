@@ -7,6 +7,7 @@ pub mod capture_cloud;
 pub mod cloud;
 pub mod fpfh;
 pub mod global;
+pub mod grid;
 pub mod icp;
 pub mod neighbors;
 pub mod preprocess;

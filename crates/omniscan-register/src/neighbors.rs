@@ -52,20 +52,6 @@ impl Neighbors {
             .collect()
     }
 
-    /// The `k` nearest points of every point in `points`, as one batch.
-    pub fn knn_batch(&self, points: &[Point3<f64>], k: usize) -> Vec<Vec<(usize, f64)>> {
-        let (Some(tree), Some(k)) = (self.tree.as_ref(), NonZero::new(k)) else {
-            return vec![Vec::new(); points.len()];
-        };
-        let queries: Vec<[f64; 3]> = points.iter().map(|p| [p.x, p.y, p.z]).collect();
-        tree.query_batch(&queries)
-            .nearest_n::<SquaredEuclidean<f64>>(k)
-            .execute()
-            .into_iter()
-            .map(|r| r.iter().map(|x| (x.item as usize, x.distance)).collect())
-            .collect()
-    }
-
     /// At most `max_nn` nearest points within `radius` (Open3D's hybrid search).
     pub fn hybrid(&self, p: &Point3<f64>, radius: f64, max_nn: usize) -> Vec<(usize, f64)> {
         let (Some(tree), Some(k)) = (self.tree.as_ref(), NonZero::new(max_nn)) else {

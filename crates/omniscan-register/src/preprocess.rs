@@ -12,6 +12,7 @@ use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use rayon::prelude::*;
 
 use crate::PointCloud;
+use crate::grid::hybrid_search;
 use crate::neighbors::Neighbors;
 
 /// Averages the points (and colours, normals) that fall in each voxel of
@@ -91,14 +92,9 @@ fn pca_normal(points: &[nalgebra::Point3<f64>], indices: &[(usize, f64)]) -> Opt
 /// Estimates normals from at most `max_nn` neighbours within `radius`, then
 /// orients them consistently (see [`orient_normals`]).
 pub fn estimate_normals(cloud: &mut PointCloud, radius: f64, max_nn: usize) {
-    let nn = Neighbors::new(&cloud.points);
-    let normals: Vec<Vector3<f64>> = cloud
-        .points
-        .par_iter()
-        .map(|p| {
-            pca_normal(&cloud.points, &nn.hybrid(p, radius, max_nn)).unwrap_or_else(Vector3::z)
-        })
-        .collect();
+    let normals = hybrid_search(&cloud.points, radius, max_nn, |_, neighbours| {
+        pca_normal(&cloud.points, neighbours).unwrap_or_else(Vector3::z)
+    });
     cloud.normals = normals;
     orient_normals(cloud, 10);
 }
