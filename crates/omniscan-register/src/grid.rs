@@ -14,8 +14,11 @@
 //! nearest query that may reach beyond the block says so and the caller asks
 //! the k-d tree instead.
 //!
-//! No crate offers this batched form (kiddo, rstar and the `*-grid` crates
-//! answer single queries), so it is written here.
+//! Written here because the crates we use answer one query at a time
+//! (kiddo's batch queries still search the tree once per point); the k-d
+//! tree stays for what a grid does badly (k nearest without a radius, far
+//! outliers). Measured after the change on the same scan: gradients 18-24
+//! ms, the 16-NN graph 17 ms (2 threads).
 
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
