@@ -177,8 +177,15 @@ impl Grid {
         [0, 1, 2].map(|a| (key >> (a as u32 * AXIS_BITS) & mask) as i64)
     }
 
+    /// Whether the grid answers queries that want up to `max_nn` neighbours
+    /// more cheaply than a k-d tree: not when a radius wide against the
+    /// cloud puts most of it in every block.
+    pub fn suits(&self, max_nn: usize) -> bool {
+        self.mean_candidates() <= 8.0 * max_nn as f64 + 256.0
+    }
+
     /// How many candidates a query at a point of the grid scans, on average.
-    pub fn mean_candidates(&self) -> f64 {
+    fn mean_candidates(&self) -> f64 {
         if self.sorted.is_empty() {
             return 0.0;
         }
@@ -304,9 +311,7 @@ impl Grid {
             .map(|(i, q)| (self.key_of_query(q), i as u32))
             .collect();
         keyed.par_sort_unstable();
-        let values = self.grouped(queries, &keyed, |i, p, cand, reach, scratch| {
-            per_query(i, p, cand, reach, scratch)
-        });
+        let values = self.grouped(queries, &keyed, per_query);
         in_order(
             values.into_iter().zip(keyed.iter().map(|k| k.1)),
             queries.len(),
@@ -398,11 +403,6 @@ impl Grid {
         })
     }
 
-    /// [`Grid::hybrid_map`] keeping the neighbour lists.
-    pub fn hybrid_all(&self, radius: f64, max_nn: usize) -> Vec<Vec<(usize, f64)>> {
-        self.hybrid_map(radius, max_nn, |_, n| n.to_vec())
-    }
-
     /// For every point `i`, `f(i, neighbours)` with its `k` nearest points
     /// (itself included), nearest first, or `f(i, None)` where the grid
     /// cannot be sure of them (fewer than `k` points in the block, or the
@@ -445,17 +445,11 @@ impl Grid {
         let r2 = radius.min(self.cell).powi(2);
         let queries: Vec<[f64; 3]> = queries.iter().map(|q| [q.x, q.y, q.z]).collect();
         self.each_query(&queries, |_, _, cand, _, _| {
-            let (mut d1, mut d2, mut best) = (f64::INFINITY, f64::INFINITY, None);
+            let mut two = NearestTwo::default();
             for (&d, &id) in cand.d2.iter().zip(&cand.ids) {
-                if d < d1 || (d == d1 && best.is_some_and(|b| (id as usize) < b)) {
-                    d2 = d1;
-                    d1 = d;
-                    best = Some(id as usize);
-                } else if d < d2 {
-                    d2 = d;
-                }
+                two.offer(d, id as usize);
             }
-            settle_two(best, d1, d2, r2)
+            two.within(r2)
         })
     }
 
@@ -465,20 +459,13 @@ impl Grid {
     pub fn nearest_two(&self, q: &Point3<f64>, radius: f64) -> (Option<(usize, f64)>, f64) {
         let p = [q.x, q.y, q.z];
         let r2 = radius.min(self.cell).powi(2);
-        let (mut d1, mut d2, mut best) = (f64::INFINITY, f64::INFINITY, None);
+        let mut two = NearestTwo::default();
         self.block(self.coords_of(&p), |s, e| {
             for k in s..e {
-                let (d, id) = (distance2(&p, &self.sorted[k]), self.ids[k] as usize);
-                if d < d1 || (d == d1 && best.is_some_and(|b| id < b)) {
-                    d2 = d1;
-                    d1 = d;
-                    best = Some(id);
-                } else if d < d2 {
-                    d2 = d;
-                }
+                two.offer(distance2(&p, &self.sorted[k]), self.ids[k] as usize);
             }
         });
-        settle_two(best, d1, d2, r2)
+        two.within(r2)
     }
 }
 
@@ -493,7 +480,7 @@ pub fn hybrid_search<T: Send>(
     f: impl Fn(usize, &[(usize, f64)]) -> T + Sync,
 ) -> Vec<T> {
     let grid = Grid::new(points, radius);
-    if grid.mean_candidates() <= 8.0 * max_nn as f64 + 256.0 {
+    if grid.suits(max_nn) {
         return grid.hybrid_map(radius, max_nn, f);
     }
     let tree = crate::neighbors::Neighbors::new(points);
@@ -504,12 +491,49 @@ pub fn hybrid_search<T: Send>(
         .collect()
 }
 
-/// The nearest (ties to the lower index) and the second's squared distance,
-/// within `r2`.
-fn settle_two(best: Option<usize>, d1: f64, d2: f64, r2: f64) -> (Option<(usize, f64)>, f64) {
-    match best {
-        Some(i) if d1 <= r2 => (Some((i, d1)), if d2 <= r2 { d2 } else { f64::INFINITY }),
-        _ => (None, f64::INFINITY),
+/// The nearest (ties to the lower index) and second-nearest of the
+/// squared distances offered to it.
+struct NearestTwo {
+    best: Option<usize>,
+    d1: f64,
+    d2: f64,
+}
+
+impl Default for NearestTwo {
+    fn default() -> Self {
+        NearestTwo {
+            best: None,
+            d1: f64::INFINITY,
+            d2: f64::INFINITY,
+        }
+    }
+}
+
+impl NearestTwo {
+    fn offer(&mut self, d: f64, id: usize) {
+        if d < self.d1 || (d == self.d1 && self.best.is_some_and(|b| id < b)) {
+            self.d2 = self.d1;
+            self.d1 = d;
+            self.best = Some(id);
+        } else if d < self.d2 {
+            self.d2 = d;
+        }
+    }
+
+    /// (index, squared distance) of the nearest within `r2`, if any, and the
+    /// second's squared distance (infinite if not within `r2`).
+    fn within(self, r2: f64) -> (Option<(usize, f64)>, f64) {
+        match self.best {
+            Some(i) if self.d1 <= r2 => (
+                Some((i, self.d1)),
+                if self.d2 <= r2 {
+                    self.d2
+                } else {
+                    f64::INFINITY
+                },
+            ),
+            _ => (None, f64::INFINITY),
+        }
     }
 }
 
@@ -581,7 +605,7 @@ mod tests {
     fn batched_queries_equal_brute_force() {
         let points = cloud(3000, 1);
         let grid = Grid::new(&points, 0.08);
-        let hybrid = grid.hybrid_all(0.07, 12);
+        let hybrid = grid.hybrid_map(0.07, 12, |_, n| n.to_vec());
         let knn = grid.knn_map(9, |_, n| n.map(<[_]>::to_vec));
         let mut sure = 0;
         for (i, p) in points.iter().enumerate() {
@@ -645,14 +669,17 @@ mod tests {
     #[test]
     fn empty_and_degenerate_inputs() {
         let grid = Grid::new(&[], 0.1);
-        assert!(grid.hybrid_all(0.1, 5).is_empty());
+        assert!(grid.hybrid_map(0.1, 5, |_, n| n.len()).is_empty());
         assert_eq!(
             grid.nearest_two(&Point3::origin(), 0.1),
             (None, f64::INFINITY)
         );
         // One point, a zero cell size and a huge extent still work.
         let one = Grid::new(&[Point3::new(1.0, 2.0, 3.0)], 0.0);
-        assert_eq!(one.hybrid_all(1.0, 5), vec![vec![(0, 0.0)]]);
+        assert_eq!(
+            one.hybrid_map(1.0, 5, |_, n| n.to_vec()),
+            vec![vec![(0, 0.0)]]
+        );
         let far = [Point3::new(-1e9, 0.0, 0.0), Point3::new(1e9, 0.0, 0.0)];
         let grid = Grid::new(&far, 1e-6);
         assert!(grid.cell() > 1e-6);

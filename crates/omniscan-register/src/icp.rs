@@ -136,8 +136,9 @@ impl Registration {
 ///
 /// Besides a k-d tree it keeps, once ICP asks for them, a grid of cells
 /// twice the correspondence distance wide ([`Grid`]: fresh nearest-point
-/// queries, colored ICP's gradients) and the 16 nearest neighbours of every
-/// target point. ICP's correspondence step starts each query at the previous
+/// queries, colored ICP's gradients; the k-d tree answers those instead when
+/// the distance is wide against the cloud) and the 16 nearest neighbours of
+/// every target point. ICP's correspondence step starts each query at the previous
 /// iteration's match and walks this graph downhill; the answer is exact when
 /// the distance found is under half the radius of the point's neighbour list
 /// (every closer point would have to be in that list), and otherwise the
@@ -190,24 +191,26 @@ impl<'a> Target<'a> {
         }
     }
 
-    /// A grid with cells at least `cell` wide: the kept one, made by the
-    /// first call, unless it is too narrow or needlessly wide for this one.
-    fn grid(&self, cell: f64) -> Cow<'_, Grid> {
+    /// A grid with cells at least `cell` wide (the kept one, made by the
+    /// first call, unless it is too narrow or needlessly wide for this one),
+    /// or none where the k-d tree is the cheaper way to answer.
+    fn grid(&self, cell: f64) -> Option<Cow<'_, Grid>> {
         let kept = self
             .grid
             .get_or_init(|| Grid::new(&self.cloud.points, cell));
-        if kept.cell() >= cell && kept.cell() <= 4.0 * cell {
+        let grid = if kept.cell() >= cell && kept.cell() <= 4.0 * cell {
             Cow::Borrowed(kept)
         } else {
             Cow::Owned(Grid::new(&self.cloud.points, cell))
-        }
+        };
+        grid.suits(GRADIENT_NN).then_some(grid)
     }
 
-    fn graph(&self, grid: &Grid) -> &NeighborGraph {
+    fn graph(&self, grid: Option<&Grid>) -> &NeighborGraph {
         self.graph.get_or_init(|| {
             let k = GRAPH_K.min(self.cloud.len());
             let pts = &self.cloud.points;
-            let lists = grid.knn_map(k, |i, found| {
+            let list = |i: usize, found: Option<&[(usize, f64)]>| {
                 let tree;
                 let found = match found {
                     Some(found) => found,
@@ -239,14 +242,21 @@ impl<'a> Target<'a> {
                     ids,
                     reach2,
                 }
-            });
+            };
+            let lists = match grid {
+                Some(grid) => grid.knn_map(k, list),
+                None => (0..pts.len())
+                    .into_par_iter()
+                    .map(|i| list(i, None))
+                    .collect(),
+            };
             NeighborGraph { lists }
         })
     }
 
     /// Searches the nearest target point to `q` from the target point
     /// `start` and returns a certificate for it (see [`Hint`]).
-    fn search(&self, grid: &Grid, q: &Point3<f64>, start: u32) -> Hint {
+    fn search(&self, grid: Option<&Grid>, q: &Point3<f64>, start: u32) -> Hint {
         let g = self.graph(grid);
         let mut cur = start as usize;
         // The walk runs in f32 on the inline copies...
@@ -307,7 +317,7 @@ impl<'a> Target<'a> {
                 moved: 0.0,
             };
         }
-        Hint::fresh(grid, q)
+        Hint::fresh(self, grid, q)
     }
 }
 
@@ -328,14 +338,25 @@ struct Hint {
     moved: f64,
 }
 
-/// The target index of a hint that found no target point within the grid's reach.
+/// The target index of a hint that found no target point within its reach.
 const NO_TARGET: u32 = u32::MAX;
 
+/// Colored ICP's gradients use at most this many neighbours.
+const GRADIENT_NN: usize = 30;
+
 impl Hint {
-    /// A fresh certificate from the two nearest target points within the
-    /// grid's cell size; with none there, the nearest is at least that far.
-    fn fresh(grid: &Grid, q: &Point3<f64>) -> Hint {
-        Hint::from_nearest_two(grid.nearest_two(q, grid.cell()), grid.cell())
+    /// A fresh certificate from the two nearest target points: within the
+    /// grid's cell size (with none there, the nearest is at least that far),
+    /// or anywhere by the k-d tree.
+    fn fresh(target: &Target, grid: Option<&Grid>, q: &Point3<f64>) -> Hint {
+        match grid {
+            Some(grid) => Hint::from_nearest_two(grid.nearest_two(q, grid.cell()), grid.cell()),
+            None => {
+                let r = target.neighbors.knn(q, 2);
+                let second = r.get(1).map_or(f64::INFINITY, |s| s.1);
+                Hint::from_nearest_two((r.first().copied(), second), f64::INFINITY)
+            }
+        }
     }
 
     fn from_nearest_two(nearest: (Option<(usize, f64)>, f64), reach: f64) -> Hint {
@@ -362,19 +383,24 @@ impl Hint {
 fn correspondences(
     points: &[Point3<f64>],
     target: &Target,
-    grid: &Grid,
+    grid: Option<&Grid>,
     max_distance: f64,
     hints: &mut Vec<Hint>,
     moved_by: &[f64],
 ) -> Vec<(usize, usize, f64)> {
     if hints.len() != points.len() {
-        // First call: k-d tree queries seed the hints.
-        let reach = grid.cell();
-        *hints = grid
-            .nearest_two_all(points, reach)
-            .into_iter()
-            .map(|nearest| Hint::from_nearest_two(nearest, reach))
-            .collect();
+        // First call: fresh searches (batched on a grid) seed the hints.
+        *hints = match grid {
+            Some(grid) => grid
+                .nearest_two_all(points, grid.cell())
+                .into_iter()
+                .map(|nearest| Hint::from_nearest_two(nearest, grid.cell()))
+                .collect(),
+            None => points
+                .par_iter()
+                .map(|p| Hint::fresh(target, None, p))
+                .collect(),
+        };
         return hints
             .iter()
             .enumerate()
@@ -400,18 +426,17 @@ fn correspondences(
                     continue;
                 }
                 if h.gap <= 2.0 * h.moved {
-                    let distance2 = |t: u32| {
-                        (t != NO_TARGET).then(|| (cloud.points[t as usize] - p).norm_squared())
-                    };
-                    let start = match (distance2(h.target), last.and_then(distance2)) {
-                        (Some(own), Some(previous)) if previous < own => last,
-                        (Some(_), _) => Some(h.target),
-                        (None, Some(_)) => last,
-                        (None, None) => None,
-                    };
+                    // Start from the point's own last match or, if nearer,
+                    // the previous point's fresh one.
+                    let distance2 = |t: u32| (cloud.points[t as usize] - p).norm_squared();
+                    let start = Some(h.target)
+                        .filter(|&t| t != NO_TARGET)
+                        .into_iter()
+                        .chain(last)
+                        .min_by(|&a, &b| distance2(a).total_cmp(&distance2(b)));
                     *h = match start {
                         Some(start) => target.search(grid, p, start),
-                        None => Hint::fresh(grid, p),
+                        None => Hint::fresh(target, grid, p),
                     };
                 }
                 if h.target == NO_TARGET {
@@ -576,32 +601,43 @@ pub fn kabsch(pairs: &[(Point3<f64>, Point3<f64>)]) -> Pose {
 /// than four neighbours).
 pub fn color_gradients(target: &Target, max_distance: f64) -> Vec<Vector3<f64>> {
     let cloud = target.cloud;
-    target
-        .grid(2.0 * max_distance)
-        .hybrid_map(2.0 * max_distance, 30, |i, nbrs| {
-            let p = cloud.points[i];
-            let n = cloud.normals[i];
-            let it = cloud.intensity(i);
-            let nn = nbrs.len();
-            if nn < 4 {
-                return Vector3::zeros();
-            }
-            let mut ata = Matrix3::zeros();
-            let mut atb = Vector3::zeros();
-            for &(j, _) in nbrs.iter().skip(1) {
-                let q = cloud.points[j];
-                let proj = q - n * (q - p).dot(&n);
-                let a = proj - p;
-                ata += a * a.transpose();
-                atb += a * (cloud.intensity(j) - it);
-            }
-            let c = n * (nn - 1) as f64;
-            ata += c * c.transpose();
-            match Cholesky::new(ata) {
-                Some(ch) => ch.solve(&atb),
-                None => Vector3::zeros(),
-            }
-        })
+    let radius = 2.0 * max_distance;
+    let gradient = |i: usize, nbrs: &[(usize, f64)]| {
+        let p = cloud.points[i];
+        let n = cloud.normals[i];
+        let it = cloud.intensity(i);
+        let nn = nbrs.len();
+        if nn < 4 {
+            return Vector3::zeros();
+        }
+        let mut ata = Matrix3::zeros();
+        let mut atb = Vector3::zeros();
+        for &(j, _) in nbrs.iter().skip(1) {
+            let q = cloud.points[j];
+            let proj = q - n * (q - p).dot(&n);
+            let a = proj - p;
+            ata += a * a.transpose();
+            atb += a * (cloud.intensity(j) - it);
+        }
+        let c = n * (nn - 1) as f64;
+        ata += c * c.transpose();
+        match Cholesky::new(ata) {
+            Some(ch) => ch.solve(&atb),
+            None => Vector3::zeros(),
+        }
+    };
+    match target.grid(radius) {
+        Some(grid) => grid.hybrid_map(radius, GRADIENT_NN, gradient),
+        None => (0..cloud.len())
+            .into_par_iter()
+            .map(|i| {
+                let nbrs = target
+                    .neighbors
+                    .hybrid(&cloud.points[i], radius, GRADIENT_NN);
+                gradient(i, &nbrs)
+            })
+            .collect(),
+    }
 }
 
 /// Runs ICP from `init`. Point-to-plane and colored ICP need target normals;
@@ -650,7 +686,8 @@ pub fn icp(
     let mut moved: Vec<Point3<f64>> = source.points.iter().map(|p| transformation * p).collect();
     let mut hints = Vec::new();
     let grid = target.grid(2.0 * max_distance);
-    let mut corr = correspondences(&moved, target, &grid, max_distance, &mut hints, &[]);
+    let grid = grid.as_deref();
+    let mut corr = correspondences(&moved, target, grid, max_distance, &mut hints, &[]);
     let mut moved_by = vec![0.0; moved.len()];
     let (mut fitness, mut rmse) = score(source.len(), &corr);
     let mut iterations = 0;
@@ -712,7 +749,7 @@ pub fn icp(
                 *m = next;
             });
         iterations += 1;
-        corr = correspondences(&moved, target, &grid, max_distance, &mut hints, &moved_by);
+        corr = correspondences(&moved, target, grid, max_distance, &mut hints, &moved_by);
         let (f, r) = score(source.len(), &corr);
         let converged = (fitness - f).abs() < criteria.relative_fitness
             && (rmse - r).abs() < criteria.relative_rmse;
@@ -800,6 +837,44 @@ mod tests {
         let est = kabsch(&pairs);
         let (a, d) = omniscan_core::geometry::pose_difference(&est, &t);
         assert!(a < 1e-9 && d < 1e-9);
+    }
+
+    #[test]
+    fn nearest_points_come_from_the_grid_or_from_the_tree_with_one_result() {
+        // 1 cm on this 0.2 m patch is searched on the grid; 15 cm would put
+        // the whole cloud in every grid block, so the k-d tree answers.
+        let target = surface(3000, 3);
+        let mut t_cloud = target.clone();
+        crate::preprocess::estimate_normals(&mut t_cloud, 0.01, 30);
+        let tt = Target::new(&t_cloud);
+        assert!(tt.grid(0.02).is_some() && tt.grid(0.3).is_none());
+        let truth = Pose::from_parts(
+            Translation3::new(0.004, -0.003, 0.002),
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 2f64.to_radians()),
+        );
+        let source = target.transformed(&truth.inverse());
+        for max_distance in [0.01, 0.15] {
+            for est in [Estimator::PointToPlane, Estimator::COLORED] {
+                let crit = Criteria {
+                    max_iteration: 60,
+                    ..Criteria::default()
+                };
+                let r = icp(
+                    &source,
+                    &tt,
+                    max_distance,
+                    &Pose::identity(),
+                    est,
+                    Kernel::L2,
+                    &crit,
+                )
+                .unwrap();
+                let (a, d) = omniscan_core::geometry::pose_difference(&r.transformation, &truth);
+                let case = format!("{est:?} at {max_distance} m");
+                assert!(a.to_degrees() < 0.01 && d < 1e-4, "{case}: {a} rad {d} m");
+                assert!(r.fitness == 1.0 && r.inlier_rmse < 1e-5, "{case}: {r:?}");
+            }
+        }
     }
 
     #[test]
