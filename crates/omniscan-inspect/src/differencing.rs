@@ -23,7 +23,7 @@ use serde::Serialize;
 use omniscan_register::PointCloud;
 use omniscan_register::neighbors::Neighbors;
 
-use crate::views::{SURFACE_ALPHA, View, ViewRender, back_project, smooth_depth};
+use crate::views::{SURFACE_ALPHA, View, ViewRender, back_project, surface_pixel_depth};
 
 /// The paper's pixel comparison of one pair.
 #[derive(Debug, Clone, Serialize)]
@@ -213,8 +213,8 @@ const EMPTY_ALPHA: f32 = 0.3;
 /// the other model's depth at that pixel and its eight neighbours (one
 /// pixel of alignment is forgiven), or where the other shows no surface at
 /// all (a hole). The flagged pixels are back-projected and pooled in voxels
-/// of `spacing`; a voxel is evidence when at least two views flag it and
-/// they are at least a quarter of the views that see it there.
+/// of `spacing`; a voxel is evidence when at least three views flag it and
+/// they are at least half of the views that see it there.
 ///
 /// This compares the depths the two models show along the same ray, which
 /// is what a user sees; the nearest-point test ([`geometric_evidence`])
@@ -242,12 +242,9 @@ pub fn depth_evidence(
             let (w, h) = (from.width as i64, from.height as i64);
             let mut out = Vec::new();
             for i in 0..from.alpha.len() {
-                let Some(z) = from.surface_depth(i, SURFACE_ALPHA) else {
+                let Some(z) = surface_pixel_depth(from, view, i) else {
                     continue;
                 };
-                if !smooth_depth(from, view, i) {
-                    continue;
-                }
                 let (x, y) = (i as i64 % w, i as i64 / w);
                 let mut best = f32::INFINITY;
                 let mut undecided = false;

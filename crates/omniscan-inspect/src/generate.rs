@@ -23,7 +23,9 @@ use omniscan_splat::sh::C0;
 use omniscan_core::Intrinsics;
 use omniscan_core::geometry::look_at;
 
-use crate::views::{SURFACE_ALPHA, View, back_project, render_views, smooth_depth, sphere_views};
+use crate::views::{
+    SURFACE_ALPHA, View, back_project, render_views, sphere_views, surface_pixel_depth,
+};
 use crate::{InspectError, standard_normal};
 
 /// How a good copy differs from the original.
@@ -210,7 +212,7 @@ fn surface_site(
         let x = rng.random_range(r.width / 4..3 * r.width / 4);
         let y = rng.random_range(r.height / 4..3 * r.height / 4);
         let i = (y * r.width + x) as usize;
-        if r.surface_depth(i, SURFACE_ALPHA).is_none() || !smooth_depth(r, view, i) {
+        if surface_pixel_depth(r, view, i).is_none() {
             continue;
         }
         let at =
@@ -329,19 +331,20 @@ pub fn plant_defect(
             // Splats whose body reaches into the ball go too, or their
             // neighbours' tails would paint the hole over; splats much
             // larger than the ball are the part's coarse shape and stay.
-            let gone: Vec<usize> = (0..model.len())
+            let keep: Vec<usize> = (0..model.len())
                 .filter(|&i| {
                     let reach = model.log_scales[i]
                         .iter()
                         .map(|s| s.exp() as f64)
                         .fold(0.0, f64::max);
                     let distance = offset(i).norm();
-                    distance <= size || (reach <= size && distance - 2.0 * reach <= size)
+                    let gone =
+                        distance <= size || (reach <= size && distance - 2.0 * reach <= size);
+                    !gone
                 })
                 .collect();
-            let keep: Vec<usize> = (0..model.len()).filter(|i| !gone.contains(i)).collect();
             out = select(model, &keep);
-            gone.len()
+            model.len() - keep.len()
         }
         DefectKind::Add => {
             let near = within(size);

@@ -172,9 +172,17 @@ pub fn back_project(view: &View, x: u32, y: u32, depth: f64) -> Point3<f64> {
     view.camera_to_world * p
 }
 
+/// Pixel `i`'s depth if it shows surface: opaque enough, and not on a depth
+/// edge.
+pub fn surface_pixel_depth(render: &ViewRender, view: &View, i: usize) -> Option<f32> {
+    render
+        .surface_depth(i, SURFACE_ALPHA)
+        .filter(|_| smooth_depth(render, view, i))
+}
+
 /// Whether pixel `i`'s depth agrees with its four neighbours: pixels on a
 /// depth edge blend two surfaces into a point on neither.
-pub fn smooth_depth(render: &ViewRender, view: &View, i: usize) -> bool {
+fn smooth_depth(render: &ViewRender, view: &View, i: usize) -> bool {
     let (w, h) = (render.width as usize, render.height as usize);
     let (x, y) = (i % w, i / w);
     let z = render.depth[i];
@@ -202,12 +210,9 @@ pub fn surface_points(renders: &[ViewRender], views: &[View], spacing: f64) -> P
         .map(|(r, view)| {
             let mut cloud = PointCloud::default();
             for i in 0..r.alpha.len() {
-                let Some(z) = r.surface_depth(i, SURFACE_ALPHA) else {
+                let Some(z) = surface_pixel_depth(r, view, i) else {
                     continue;
                 };
-                if !smooth_depth(r, view, i) {
-                    continue;
-                }
                 let (x, y) = ((i % r.width as usize) as u32, (i / r.width as usize) as u32);
                 cloud.points.push(back_project(view, x, y, z as f64));
                 cloud.colors.push(r.rgb[i]);

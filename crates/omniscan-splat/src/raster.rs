@@ -451,8 +451,9 @@ pub struct Render<F> {
 /// depth, and the pixel box it can reach (x0, x1, y0, y1).
 type Packed<F> = ([F; 2], [F; 3], F, [F; 3], F, [F; 4]);
 
-/// Side of the sub-tiles that cull Gaussians before compositing (4x4
-/// pixels: 20% faster than 8x8 at 160x120 on faint models, 2x2 slower).
+/// Side of the sub-tiles that cull Gaussians before compositing and are
+/// composited together (4x4 pixels; with pixel-by-pixel compositing it was
+/// 20% faster than 8x8 at 160x120 on faint models, 2x2 slower).
 const SUBTILE: u32 = TILE / 4;
 
 /// One pixel's result: index, colour, alpha, depth sum, median depth, contributors.
