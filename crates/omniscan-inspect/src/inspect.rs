@@ -11,10 +11,11 @@ use omniscan_splat::orbit::robust_bounds;
 
 use crate::InspectError;
 use crate::align::{AlignSettings, Alignment, align_model, model_points};
+use crate::closeup::{CloseUp, CloseUpSettings, look_closer};
 use crate::differencing::{
     PixelComparison, compare_pixels, depth_evidence, geometric_evidence, merge, visual_evidence,
 };
-use crate::verdict::{PairEvidence, Verdict, VerdictSettings, decide};
+use crate::verdict::{Kind, PairEvidence, Verdict, VerdictSettings, find_regions, name_defective};
 use crate::views::{View, ViewRender, render_views, render_views_on, sphere_views, surface_points};
 use omniscan_splat::backend::{Backend, Renderer};
 
@@ -45,6 +46,10 @@ pub struct InspectSettings {
     /// Indices of models known to be good; `None` = any model may be defective.
     pub references: Option<Vec<usize>>,
     pub align: AlignSettings,
+    /// A second, close look at small geometric differences; `None`: none.
+    /// Off by default: it finds more true defects and more differences
+    /// between good copies alike (see [`crate::closeup`]).
+    pub close_up: Option<CloseUpSettings>,
     /// Where the views are rendered (`auto`: a real GPU when there is one).
     pub backend: Backend,
 }
@@ -63,6 +68,7 @@ impl Default for InspectSettings {
             min_visual_area_mm2: 8.0,
             references: None,
             align: AlignSettings::default(),
+            close_up: None,
             backend: Backend::Auto,
         }
     }
@@ -74,6 +80,7 @@ pub struct Timings {
     pub align: f64,
     pub render: f64,
     pub compare: f64,
+    pub close_up: f64,
     pub total: f64,
 }
 
@@ -88,6 +95,8 @@ pub struct Inspection {
     pub surfaces: Vec<PointCloud>,
     pub pixels: Vec<PixelComparison>,
     pub pairs: Vec<PairEvidence>,
+    /// Places of small geometric differences looked at again.
+    pub close_ups: Vec<CloseUp>,
     pub verdict: Verdict,
     pub timings: Timings,
 }
@@ -292,20 +301,50 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
             });
         }
     }
-    let verdict = decide(
+    let verdict_settings = VerdictSettings {
+        spacing,
+        units_per_metre: settings.units_per_metre,
+        match_radius: 3.0 * spacing,
+        min_geometric_area_mm2: settings
+            .min_geometric_area_mm2
+            .unwrap_or(std::f64::consts::PI * (0.5 * settings.threshold_mm).powi(2)),
+        min_visual_area_mm2: settings.min_visual_area_mm2,
+    };
+    let mut regions = find_regions(&candidates, &pairs, &verdict_settings);
+    let compare_done = Instant::now();
+    let close_ups = match &settings.close_up {
+        Some(close_up) => look_closer(
+            &renderer,
+            &aligned,
+            &candidates,
+            &pairs,
+            &regions,
+            &views,
+            &renders,
+            threshold,
+            &verdict_settings,
+            close_up,
+        )?,
+        None => Vec::new(),
+    };
+    // What a close look found counts unless a significant region already
+    // holds it (places near one another see the same defect).
+    for region in close_ups.iter().flat_map(|c| &c.regions) {
+        let known = regions.iter().any(|r| {
+            r.kind == Kind::Geometric
+                && r.significant
+                && r.overlaps(region, settings.units_per_metre)
+        });
+        if region.kind == Kind::Geometric && !known {
+            regions.push(region.clone());
+        }
+    }
+    let verdict = name_defective(
         models.len(),
         &candidates,
-        &pairs,
+        regions,
         &pixels,
-        &VerdictSettings {
-            spacing,
-            units_per_metre: settings.units_per_metre,
-            match_radius: 3.0 * spacing,
-            min_geometric_area_mm2: settings
-                .min_geometric_area_mm2
-                .unwrap_or(std::f64::consts::PI * (0.5 * settings.threshold_mm).powi(2)),
-            min_visual_area_mm2: settings.min_visual_area_mm2,
-        },
+        settings.units_per_metre,
     );
     let end = Instant::now();
     Ok(Inspection {
@@ -315,11 +354,13 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
         surfaces,
         pixels,
         pairs,
+        close_ups,
         verdict,
         timings: Timings {
             align: (align_done - start).as_secs_f64(),
             render: (render_done - align_done).as_secs_f64(),
-            compare: (end - render_done).as_secs_f64(),
+            compare: (compare_done - render_done).as_secs_f64(),
+            close_up: (end - compare_done).as_secs_f64(),
             total: (end - start).as_secs_f64(),
         },
     })

@@ -22,6 +22,7 @@
 #![allow(clippy::needless_range_loop)]
 
 pub mod align;
+pub mod closeup;
 pub mod differencing;
 pub mod generate;
 pub mod inspect;

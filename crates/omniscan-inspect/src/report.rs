@@ -81,8 +81,10 @@ const COMBINATION: &str = "Both differencing methods locate evidence on the surf
 differencing gives surface points farther than the threshold from the other model, pixel \
 differencing gives pixels that differ in colour (depth agreeing) back-projected and kept where \
 most views agree. A spot counts against a model when it differs there from every other model \
-and the others agree there; such spots are clustered into regions, and the model with the \
-largest significant area is defective (none when no region is significant). The paper's rule \
+and the others agree there; such spots are clustered into regions. With --close-up, where a \
+little geometric evidence (too little for a region) points at one model, that place is rendered \
+again from up to 16 of the views that see it, zoomed to 0.4 mm pixels, and judged by the same \
+rules (its regions have close_up true). The model with the largest significant area is defective (none when no region is significant). The paper's rule \
 (the pair with the smallest mean pixel distance is the good pair) is reported and breaks exact ties.";
 
 fn name(paths: &[PathBuf], i: usize) -> String {
@@ -147,6 +149,13 @@ pub fn verdict_file<'a>(
                 surface_points_a: inspection.surfaces[p.a].len(),
                 surface_points_b: inspection.surfaces[p.b].len(),
             }).collect::<Vec<_>>(),
+            "close_ups": inspection.close_ups.iter().map(|c| serde_json::json!({
+                "model": name(paths, c.model),
+                "centre": [c.centre.x, c.centre.y, c.centre.z],
+                "radius_mm": c.radius * 1000.0 / settings.units_per_metre,
+                "views": c.views.len(),
+                "significant_regions": c.regions.iter().filter(|r| r.significant).count(),
+            })).collect::<Vec<_>>(),
         }),
         combination: COMBINATION,
         units_per_metre: settings.units_per_metre,

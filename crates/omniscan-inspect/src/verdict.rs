@@ -55,6 +55,19 @@ pub struct Region {
     pub mean_difference: f64,
     /// Whether the region is over the minimum area for its kind.
     pub significant: bool,
+    /// Found by a close look ([`crate::closeup`]) rather than the first pass.
+    pub close_up: bool,
+}
+
+impl Region {
+    /// Whether `other` lies on the same model within this region's extent
+    /// or its own (`units_per_metre` of the centroids).
+    pub fn overlaps(&self, other: &Region, units_per_metre: f64) -> bool {
+        let mm = 1000.0 / units_per_metre;
+        self.model == other.model
+            && (Point3::from(self.centroid) - Point3::from(other.centroid)).norm() * mm
+                <= 0.5 * self.extent_mm + 0.5 * other.extent_mm
+    }
 }
 
 /// Thresholds of the verdict.
@@ -94,7 +107,12 @@ fn evidence_of(pairs: &[PairEvidence], kind: Kind, i: usize) -> &Evidence {
 
 /// Points of `model`'s pairs that every other pair with `model` confirms
 /// and no pair without it shows.
-fn attributed(pairs: &[PairEvidence], model: usize, kind: Kind, radius: f64) -> Evidence {
+pub(crate) fn attributed(
+    pairs: &[PairEvidence],
+    model: usize,
+    kind: Kind,
+    radius: f64,
+) -> Evidence {
     let with: Vec<usize> = (0..pairs.len())
         .filter(|&i| pairs[i].a == model || pairs[i].b == model)
         .collect();
@@ -181,6 +199,7 @@ fn cluster(
                     Kind::Visual => mean,
                 },
                 significant: area >= minimum,
+                close_up: false,
             })
         })
         .collect()
@@ -195,43 +214,61 @@ pub fn decide(
     pixels: &[PixelComparison],
     settings: &VerdictSettings,
 ) -> Verdict {
+    name_defective(
+        models,
+        candidates,
+        find_regions(candidates, pairs, settings),
+        pixels,
+        settings.units_per_metre,
+    )
+}
+
+/// Every candidate's regions of attributed evidence, significant or not.
+pub fn find_regions(
+    candidates: &[usize],
+    pairs: &[PairEvidence],
+    settings: &VerdictSettings,
+) -> Vec<Region> {
     let mut regions = Vec::new();
+    for &m in candidates {
+        for kind in [Kind::Geometric, Kind::Visual] {
+            regions.extend(cluster(
+                &attributed(pairs, m, kind, settings.match_radius),
+                m,
+                kind,
+                settings,
+            ));
+        }
+    }
+    regions
+}
+
+/// The verdict from the regions found: the candidate with the largest
+/// significant area is defective.
+pub fn name_defective(
+    models: usize,
+    candidates: &[usize],
+    mut regions: Vec<Region>,
+    pixels: &[PixelComparison],
+    units_per_metre: f64,
+) -> Verdict {
+    // A visual difference inside a geometric region of the same model is
+    // part of it (a dent also shades differently).
+    let geometric: Vec<Region> = regions
+        .iter()
+        .filter(|g| g.kind == Kind::Geometric && g.significant)
+        .cloned()
+        .collect();
+    regions.retain(|v| {
+        v.kind == Kind::Geometric || !geometric.iter().any(|g| g.overlaps(v, units_per_metre))
+    });
     let mut geometric_area = vec![0.0; models];
     let mut visual_area = vec![0.0; models];
-    for &m in candidates {
-        let geometric = cluster(
-            &attributed(pairs, m, Kind::Geometric, settings.match_radius),
-            m,
-            Kind::Geometric,
-            settings,
-        );
-        let mut visual = cluster(
-            &attributed(pairs, m, Kind::Visual, settings.match_radius),
-            m,
-            Kind::Visual,
-            settings,
-        );
-        // A visual difference inside a geometric region is part of it.
-        let mm = 1000.0 / settings.units_per_metre;
-        visual.retain(|v| {
-            !geometric.iter().any(|g| {
-                g.significant
-                    && (Point3::from(g.centroid) - Point3::from(v.centroid)).norm() * mm
-                        <= 0.5 * g.extent_mm + 0.5 * v.extent_mm
-            })
-        });
-        geometric_area[m] = geometric
-            .iter()
-            .filter(|r| r.significant)
-            .map(|r| r.area_mm2)
-            .sum();
-        visual_area[m] = visual
-            .iter()
-            .filter(|r| r.significant)
-            .map(|r| r.area_mm2)
-            .sum();
-        regions.extend(geometric);
-        regions.extend(visual);
+    for r in regions.iter().filter(|r| r.significant) {
+        match r.kind {
+            Kind::Geometric => geometric_area[r.model] += r.area_mm2,
+            Kind::Visual => visual_area[r.model] += r.area_mm2,
+        }
     }
     regions.sort_by(|a, b| {
         b.significant

@@ -3,6 +3,7 @@
 
 use nalgebra::Point3;
 
+use omniscan_inspect::closeup::CloseUpSettings;
 use omniscan_inspect::generate::{CopySettings, DefectKind, good_copy, plant_defect, test_part};
 use omniscan_inspect::report::write_report;
 use omniscan_inspect::{InspectSettings, inspect};
@@ -85,6 +86,33 @@ fn a_bump_is_found_on_the_right_copy_and_in_the_right_place() {
         "{:#?}",
         result.verdict.regions
     );
+}
+
+#[test]
+fn a_close_look_finds_a_bump_the_coarse_views_blur() {
+    // At 1.6 mm per pixel a 5 mm bump is a few pixels whose depths blend
+    // with the surface around it: the first pass alone does not find it.
+    let coarse = InspectSettings {
+        views: 40,
+        width: 40,
+        height: 30,
+        ..InspectSettings::default()
+    };
+    let (copies, centre) = triplet(Some((DefectKind::Bump, 5.0)), 1, 3);
+    let without = inspect(&copies, &coarse).unwrap();
+    assert!(without.close_ups.is_empty());
+    assert_eq!(without.verdict.defective, None, "{:#?}", without.verdict);
+    let with = inspect(
+        &copies,
+        &InspectSettings {
+            close_up: Some(CloseUpSettings::default()),
+            ..coarse
+        },
+    )
+    .unwrap();
+    assert!(!with.close_ups.is_empty());
+    assert_eq!(with.verdict.defective, Some(1), "{:#?}", with.verdict);
+    assert!(located(&with, 1, &centre.unwrap(), 5.0));
 }
 
 #[test]
