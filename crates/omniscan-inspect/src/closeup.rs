@@ -52,7 +52,8 @@ pub struct CloseUpSettings {
     pub max_places: usize,
     /// Views of each place, at most.
     pub views: usize,
-    /// Pixel size at the place, millimetres.
+    /// Pixel size at the place, millimetres (larger where the place would
+    /// need more than `max_side` pixels).
     pub pixel_mm: f64,
     /// Largest close-up image side, pixels.
     pub max_side: u32,
