@@ -304,15 +304,9 @@ pub fn look_closer(
             .iter()
             .map(|m| render_views_on(renderer, m, &close))
             .collect::<Result<_, _>>()?;
-        let mut close_pairs = Vec::new();
-        for a in 0..models.len() {
-            for b in a + 1..models.len() {
-                close_pairs.push((a, b));
-            }
-        }
-        let close_pairs: Vec<PairEvidence> = close_pairs
-            .into_par_iter()
-            .map(|(a, b)| PairEvidence {
+        let close_pairs: Vec<PairEvidence> = pairs
+            .par_iter()
+            .map(|&PairEvidence { a, b, .. }| PairEvidence {
                 a,
                 b,
                 geometric: within(

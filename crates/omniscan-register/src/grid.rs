@@ -95,6 +95,18 @@ impl Candidates {
                 dx * dx + dy * dy + dz * dz
             }));
     }
+
+    /// The measured candidates within squared distance `r2`, into `found`.
+    fn within(&self, r2: f64, found: &mut Vec<(usize, f64)>) {
+        found.clear();
+        found.extend(
+            self.d2
+                .iter()
+                .zip(&self.ids)
+                .filter(|(d, _)| **d <= r2)
+                .map(|(&d, &id)| (id as usize, d)),
+        );
+    }
 }
 
 fn distance2(a: &[f64; 3], b: &[f64; 3]) -> f64 {
@@ -387,14 +399,7 @@ impl Grid {
     ) -> Vec<T> {
         let r2 = radius.min(self.cell).powi(2);
         self.each_point(|i, _, cand, _, found| {
-            found.clear();
-            found.extend(
-                cand.d2
-                    .iter()
-                    .zip(&cand.ids)
-                    .filter(|(d, _)| **d <= r2)
-                    .map(|(&d, &id)| (id as usize, d)),
-            );
+            cand.within(r2, found);
             keep_nearest(found, max_nn);
             if let Some(own) = found.iter().position(|x| x.0 == i) {
                 found.swap(0, own);
@@ -417,15 +422,7 @@ impl Grid {
                 return f(i, None);
             }
             // Only points within reach can be among a certain answer.
-            let reach2 = reach * reach;
-            found.clear();
-            found.extend(
-                cand.d2
-                    .iter()
-                    .zip(&cand.ids)
-                    .filter(|(d, _)| **d <= reach2)
-                    .map(|(&d, &id)| (id as usize, d)),
-            );
+            cand.within(reach * reach, found);
             if found.len() < k {
                 return f(i, None);
             }

@@ -839,6 +839,33 @@ mod tests {
         assert!(a < 1e-9 && d < 1e-9);
     }
 
+    /// 60 ICP iterations of `est` from the identity; the result and its
+    /// angle (radians) and shift (metres) from `truth`.
+    fn icp_from_identity(
+        source: &PointCloud,
+        target: &Target,
+        max_distance: f64,
+        est: Estimator,
+        truth: &Pose,
+    ) -> (Registration, f64, f64) {
+        let crit = Criteria {
+            max_iteration: 60,
+            ..Criteria::default()
+        };
+        let r = icp(
+            source,
+            target,
+            max_distance,
+            &Pose::identity(),
+            est,
+            Kernel::L2,
+            &crit,
+        )
+        .unwrap();
+        let (a, d) = omniscan_core::geometry::pose_difference(&r.transformation, truth);
+        (r, a, d)
+    }
+
     #[test]
     fn nearest_points_come_from_the_grid_or_from_the_tree_with_one_result() {
         // 1 cm on this 0.2 m patch is searched on the grid; 15 cm would put
@@ -855,21 +882,7 @@ mod tests {
         let source = target.transformed(&truth.inverse());
         for max_distance in [0.01, 0.15] {
             for est in [Estimator::PointToPlane, Estimator::COLORED] {
-                let crit = Criteria {
-                    max_iteration: 60,
-                    ..Criteria::default()
-                };
-                let r = icp(
-                    &source,
-                    &tt,
-                    max_distance,
-                    &Pose::identity(),
-                    est,
-                    Kernel::L2,
-                    &crit,
-                )
-                .unwrap();
-                let (a, d) = omniscan_core::geometry::pose_difference(&r.transformation, &truth);
+                let (r, a, d) = icp_from_identity(&source, &tt, max_distance, est, &truth);
                 let case = format!("{est:?} at {max_distance} m");
                 assert!(a.to_degrees() < 0.01 && d < 1e-4, "{case}: {a} rad {d} m");
                 assert!(r.fitness == 1.0 && r.inlier_rmse < 1e-5, "{case}: {r:?}");
@@ -904,21 +917,7 @@ mod tests {
                 Estimator::PointToPlane,
                 Estimator::COLORED,
             ] {
-                let crit = Criteria {
-                    max_iteration: 60,
-                    ..Criteria::default()
-                };
-                let r = icp(
-                    &source,
-                    &tt,
-                    0.02,
-                    &Pose::identity(),
-                    est,
-                    Kernel::L2,
-                    &crit,
-                )
-                .unwrap();
-                let (a, d) = omniscan_core::geometry::pose_difference(&r.transformation, &truth);
+                let (r, a, d) = icp_from_identity(&source, &tt, 0.02, est, &truth);
                 assert!(
                     a.to_degrees() < 0.01 && d < 1e-4,
                     "{est:?}: {:.4}° {:.2e} m",
