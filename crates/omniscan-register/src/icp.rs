@@ -138,7 +138,9 @@ impl Registration {
 /// twice the correspondence distance wide ([`Grid`]: fresh nearest-point
 /// queries, colored ICP's gradients; the k-d tree answers those instead when
 /// the distance is wide against the cloud) and the 16 nearest neighbours of
-/// every target point. ICP's correspondence step starts each query at the previous
+/// every target point (taken from the gradients' 30 nearest when colored ICP
+/// comes first: on `frag_115` that saved the graph's own pass, about a fifth
+/// of a colored ICP run). ICP's correspondence step starts each query at the previous
 /// iteration's match and walks this graph downhill; the answer is exact when
 /// the distance found is under half the radius of the point's neighbour list
 /// (every closer point would have to be in that list), and otherwise the
@@ -180,6 +182,8 @@ impl NeighborList {
 }
 
 const GRAPH_K: usize = 16;
+// Colored ICP takes the graph from its gradients' neighbour lists.
+const _: () = assert!(GRAPH_K <= GRADIENT_NN);
 
 impl<'a> Target<'a> {
     pub fn new(cloud: &'a PointCloud) -> Target<'a> {
@@ -206,48 +210,54 @@ impl<'a> Target<'a> {
         grid.suits(GRADIENT_NN).then_some(grid)
     }
 
+    /// Point `i`'s entry of the neighbour graph, from its `GRAPH_K` nearest
+    /// (or the whole cloud's points, if fewer), nearest first; without them
+    /// the k-d tree finds them.
+    fn neighbor_list(&self, i: usize, nearest: Option<&[(usize, f64)]>) -> NeighborList {
+        let k = GRAPH_K.min(self.cloud.len());
+        let pts = &self.cloud.points;
+        let tree;
+        let found = match nearest {
+            Some(found) => &found[..k.min(found.len())],
+            None => {
+                tree = self.neighbors.knn(&pts[i], k);
+                &tree[..]
+            }
+        };
+        // With every point in the list, nothing lies outside it.
+        let reach2 = if k < GRAPH_K {
+            f64::INFINITY
+        } else {
+            found.last().map_or(0.0, |x| x.1)
+        };
+        // Short lists repeat their last entry; the point itself stays
+        // first so a walk can stay where it is.
+        let id = |m: usize| {
+            found
+                .get(m)
+                .or(found.last())
+                .map_or(i as u32, |x| x.0 as u32)
+        };
+        let ids: [u32; GRAPH_K] = std::array::from_fn(id);
+        let coordinate = |a: usize| ids.map(|id| pts[id as usize][a] as f32);
+        NeighborList {
+            x: coordinate(0),
+            y: coordinate(1),
+            z: coordinate(2),
+            ids,
+            reach2,
+        }
+    }
+
     fn graph(&self, grid: Option<&Grid>) -> &NeighborGraph {
         self.graph.get_or_init(|| {
-            let k = GRAPH_K.min(self.cloud.len());
-            let pts = &self.cloud.points;
-            let list = |i: usize, found: Option<&[(usize, f64)]>| {
-                let tree;
-                let found = match found {
-                    Some(found) => found,
-                    None => {
-                        tree = self.neighbors.knn(&pts[i], k);
-                        &tree[..]
-                    }
-                };
-                // With every point in the list, nothing lies outside it.
-                let reach2 = if k < GRAPH_K {
-                    f64::INFINITY
-                } else {
-                    found.last().map_or(0.0, |x| x.1)
-                };
-                // Short lists repeat their last entry; the point itself stays
-                // first so a walk can stay where it is.
-                let id = |m: usize| {
-                    found
-                        .get(m)
-                        .or(found.last())
-                        .map_or(i as u32, |x| x.0 as u32)
-                };
-                let ids: [u32; GRAPH_K] = std::array::from_fn(id);
-                let coordinate = |a: usize| ids.map(|id| pts[id as usize][a] as f32);
-                NeighborList {
-                    x: coordinate(0),
-                    y: coordinate(1),
-                    z: coordinate(2),
-                    ids,
-                    reach2,
-                }
-            };
             let lists = match grid {
-                Some(grid) => grid.knn_map(k, list),
-                None => (0..pts.len())
+                Some(grid) => grid.knn_map(GRAPH_K.min(self.cloud.len()), |i, nearest| {
+                    self.neighbor_list(i, nearest)
+                }),
+                None => (0..self.cloud.len())
                     .into_par_iter()
-                    .map(|i| list(i, None))
+                    .map(|i| self.neighbor_list(i, None))
                     .collect(),
             };
             NeighborGraph { lists }
@@ -626,17 +636,36 @@ pub fn color_gradients(target: &Target, max_distance: f64) -> Vec<Vector3<f64>> 
             None => Vector3::zeros(),
         }
     };
+    let from_tree = |i: usize| {
+        let nbrs = target
+            .neighbors
+            .hybrid(&cloud.points[i], radius, GRADIENT_NN);
+        gradient(i, &nbrs)
+    };
     match target.grid(radius) {
+        // The neighbour graph ICP walks is the first GRAPH_K of the same k
+        // nearest, so the first colored ICP on a target builds both in one
+        // pass (the hybrid search's answer is the k nearest cut at its radius).
+        Some(grid) if target.graph.get().is_none() => {
+            let (gradients, lists) = grid
+                .knn_map(GRADIENT_NN.min(cloud.len()), |i, nearest| match nearest {
+                    Some(nearest) => {
+                        let within = nearest.partition_point(|n| n.1 <= radius * radius);
+                        (
+                            gradient(i, &nearest[..within]),
+                            target.neighbor_list(i, Some(nearest)),
+                        )
+                    }
+                    None => (from_tree(i), target.neighbor_list(i, None)),
+                })
+                .into_iter()
+                .unzip();
+            // A concurrent call may have set it meanwhile: the same lists.
+            let _ = target.graph.set(NeighborGraph { lists });
+            gradients
+        }
         Some(grid) => grid.hybrid_map(radius, GRADIENT_NN, gradient),
-        None => (0..cloud.len())
-            .into_par_iter()
-            .map(|i| {
-                let nbrs = target
-                    .neighbors
-                    .hybrid(&cloud.points[i], radius, GRADIENT_NN);
-                gradient(i, &nbrs)
-            })
-            .collect(),
+        None => (0..cloud.len()).into_par_iter().map(from_tree).collect(),
     }
 }
 
@@ -827,6 +856,48 @@ mod tests {
             c.colors.push([t, 0.3 + 0.4 * t, 1.0 - t]);
         }
         c
+    }
+
+    #[test]
+    fn gradients_pass_builds_the_same_graph_and_gradients_as_the_tree() {
+        let mut cloud = surface(3000, 5);
+        crate::preprocess::estimate_normals(&mut cloud, 0.01, 30);
+        let max_distance = 0.01;
+        // Colored ICP first: the graph comes from the gradients' lists.
+        let shared = Target::new(&cloud);
+        let gradients = color_gradients(&shared, max_distance);
+        assert!(shared.graph.get().is_some());
+        // The graph alone, from the grid's 16 nearest.
+        let alone = Target::new(&cloud);
+        let graph = alone.graph(alone.grid(2.0 * max_distance).as_deref());
+        // Both against the k-d tree, point by point.
+        let radius = 2.0 * max_distance;
+        for i in (0..cloud.len()).step_by(7) {
+            let tree = shared.neighbors.knn(&cloud.points[i], GRAPH_K);
+            let ids: Vec<u32> = tree.iter().map(|n| n.0 as u32).collect();
+            for lists in [&shared.graph.get().unwrap().lists, &graph.lists] {
+                assert_eq!(lists[i].ids[..], ids[..], "neighbours of point {i}");
+                assert_eq!(lists[i].reach2, tree[GRAPH_K - 1].1);
+            }
+            let hybrid = shared
+                .neighbors
+                .hybrid(&cloud.points[i], radius, GRADIENT_NN);
+            let mut ata = Matrix3::zeros();
+            let mut atb = Vector3::zeros();
+            let (p, n) = (cloud.points[i], cloud.normals[i]);
+            for &(j, _) in hybrid.iter().filter(|n| n.0 != i) {
+                let a = cloud.points[j] - cloud.normals[i] * (cloud.points[j] - p).dot(&n) - p;
+                ata += a * a.transpose();
+                atb += a * (cloud.intensity(j) - cloud.intensity(i));
+            }
+            let c = n * (hybrid.len() - 1) as f64;
+            let expected = Cholesky::new(ata + c * c.transpose()).unwrap().solve(&atb);
+            assert!(
+                (gradients[i] - expected).norm() <= 1e-9 * expected.norm().max(1.0),
+                "gradient of point {i}: {} vs {expected}",
+                gradients[i]
+            );
+        }
     }
 
     #[test]
