@@ -647,16 +647,22 @@ pub fn color_gradients(target: &Target, max_distance: f64) -> Vec<Vector3<f64>> 
         // nearest, so the first colored ICP on a target builds both in one
         // pass (the hybrid search's answer is the k nearest cut at its radius).
         Some(grid) if target.graph.get().is_none() => {
+            let k = GRADIENT_NN.min(cloud.len());
             let (gradients, lists) = grid
-                .knn_map(GRADIENT_NN.min(cloud.len()), |i, nearest| match nearest {
-                    Some(nearest) => {
-                        let within = nearest.partition_point(|n| n.1 <= radius * radius);
-                        (
-                            gradient(i, &nearest[..within]),
-                            target.neighbor_list(i, Some(nearest)),
-                        )
-                    }
-                    None => (from_tree(i), target.neighbor_list(i, None)),
+                .knn_map(k, |i, nearest| {
+                    let tree;
+                    let nearest = match nearest {
+                        Some(nearest) => nearest,
+                        None => {
+                            tree = target.neighbors.knn(&cloud.points[i], k);
+                            &tree[..]
+                        }
+                    };
+                    let within = nearest.partition_point(|n| n.1 <= radius * radius);
+                    (
+                        gradient(i, &nearest[..within]),
+                        target.neighbor_list(i, Some(nearest)),
+                    )
                 })
                 .into_iter()
                 .unzip();
@@ -858,10 +864,16 @@ mod tests {
         c
     }
 
+    /// [`surface`] with normals (1 cm radius, 30 neighbours), for targets.
+    fn surface_with_normals(n: usize, seed: u64) -> PointCloud {
+        let mut cloud = surface(n, seed);
+        crate::preprocess::estimate_normals(&mut cloud, 0.01, 30);
+        cloud
+    }
+
     #[test]
     fn gradients_pass_builds_the_same_graph_and_gradients_as_the_tree() {
-        let mut cloud = surface(3000, 5);
-        crate::preprocess::estimate_normals(&mut cloud, 0.01, 30);
+        let cloud = surface_with_normals(3000, 5);
         let max_distance = 0.01;
         // Colored ICP first: the graph comes from the gradients' lists.
         let shared = Target::new(&cloud);
@@ -886,7 +898,7 @@ mod tests {
             let mut atb = Vector3::zeros();
             let (p, n) = (cloud.points[i], cloud.normals[i]);
             for &(j, _) in hybrid.iter().filter(|n| n.0 != i) {
-                let a = cloud.points[j] - cloud.normals[i] * (cloud.points[j] - p).dot(&n) - p;
+                let a = cloud.points[j] - n * (cloud.points[j] - p).dot(&n) - p;
                 ata += a * a.transpose();
                 atb += a * (cloud.intensity(j) - cloud.intensity(i));
             }
@@ -941,10 +953,8 @@ mod tests {
     fn nearest_points_come_from_the_grid_or_from_the_tree_with_one_result() {
         // 1 cm on this 0.2 m patch is searched on the grid; 15 cm would put
         // the whole cloud in every grid block, so the k-d tree answers.
-        let target = surface(3000, 3);
-        let mut t_cloud = target.clone();
-        crate::preprocess::estimate_normals(&mut t_cloud, 0.01, 30);
-        let tt = Target::new(&t_cloud);
+        let target = surface_with_normals(3000, 3);
+        let tt = Target::new(&target);
         assert!(tt.grid(0.02).is_some() && tt.grid(0.3).is_none());
         let truth = Pose::from_parts(
             Translation3::new(0.004, -0.003, 0.002),
@@ -963,10 +973,8 @@ mod tests {
 
     #[test]
     fn identical_clouds_under_random_transforms_align_exactly() {
-        let target = surface(3000, 2);
-        let mut t_cloud = target.clone();
-        crate::preprocess::estimate_normals(&mut t_cloud, 0.01, 30);
-        let tt = Target::new(&t_cloud);
+        let target = surface_with_normals(3000, 2);
+        let tt = Target::new(&target);
         let mut rng = ChaCha8Rng::seed_from_u64(7);
         for _ in 0..5 {
             let axis = Vector3::new(
@@ -1113,10 +1121,8 @@ mod tests {
 
     #[test]
     fn robust_kernels_resist_outliers() {
-        let target = surface(3000, 4);
-        let mut tn = target.clone();
-        crate::preprocess::estimate_normals(&mut tn, 0.01, 30);
-        let tt = Target::new(&tn);
+        let target = surface_with_normals(3000, 4);
+        let tt = Target::new(&target);
         let truth = Pose::new(
             Vector3::new(0.003, 0.002, -0.001),
             Vector3::new(0.02, -0.03, 0.04),
