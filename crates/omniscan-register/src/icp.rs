@@ -972,6 +972,66 @@ mod tests {
     }
 
     #[test]
+    fn kept_correspondences_are_those_of_a_fresh_search_after_every_move() {
+        // A source sampled apart from the target, moved as ICP moves it:
+        // large steps first, then small ones back and forth, so that some
+        // points keep their match on a certificate and others search again.
+        let target = surface_with_normals(4000, 8);
+        let mut source = surface(3000, 9);
+        let mut rng = ChaCha8Rng::seed_from_u64(10);
+        for p in &mut source.points {
+            p.z += 0.002 * (rng.random::<f64>() - 0.5);
+        }
+        let tt = Target::new(&target);
+        // On the grid (1 cm) and on the k-d tree (15 cm).
+        for max_distance in [0.01, 0.15] {
+            let grid = tt.grid(2.0 * max_distance);
+            let grid = grid.as_deref();
+            let mut hints = Vec::new();
+            let mut last: Option<Vec<Point3<f64>>> = None;
+            let (mut kept, mut visits) = (0, 0);
+            for step in 0..40 {
+                let size = 0.01 * 0.8f64.powi(step) * if step % 2 == 0 { 1.0 } else { -0.7 };
+                let pose = Pose::from_parts(
+                    Translation3::new(size, -0.5 * size, 0.3 * size),
+                    UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 3.0 * size),
+                );
+                let moved: Vec<Point3<f64>> = source.points.iter().map(|p| pose * p).collect();
+                let moved_by: Vec<f64> = match &last {
+                    Some(last) => moved
+                        .iter()
+                        .zip(last)
+                        .map(|(p, q)| (p - q).norm())
+                        .collect(),
+                    None => Vec::new(),
+                };
+                let found = correspondences(&moved, &tt, grid, max_distance, &mut hints, &moved_by);
+                // A search starts the point's move afresh.
+                kept += hints.iter().filter(|h| h.moved > 0.0).count();
+                visits += moved_by.len();
+                last = Some(moved.clone());
+                let fresh: Vec<(usize, usize, f64)> = moved
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(i, p)| {
+                        let (j, d2) = tt.neighbors.knn(p, 1)[0];
+                        (d2 <= max_distance * max_distance).then_some((i, j, d2))
+                    })
+                    .collect();
+                assert_eq!(found.len(), fresh.len(), "step {step} at {max_distance} m");
+                for (f, e) in found.iter().zip(&fresh) {
+                    assert!(
+                        f.0 == e.0 && f.1 == e.1 && (f.2 - e.2).abs() <= 1e-15,
+                        "step {step} at {max_distance} m: {f:?} vs {e:?}"
+                    );
+                }
+            }
+            // The certificates did some of the work.
+            assert!(kept > visits / 10, "{kept} of {visits} kept");
+        }
+    }
+
+    #[test]
     fn identical_clouds_under_random_transforms_align_exactly() {
         let target = surface_with_normals(3000, 2);
         let tt = Target::new(&target);
