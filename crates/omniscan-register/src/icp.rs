@@ -1009,7 +1009,6 @@ mod tests {
                 // A search starts the point's move afresh.
                 kept += hints.iter().filter(|h| h.moved > 0.0).count();
                 visits += moved_by.len();
-                last = Some(moved.clone());
                 let fresh: Vec<(usize, usize, f64)> = moved
                     .iter()
                     .enumerate()
@@ -1025,6 +1024,7 @@ mod tests {
                         "step {step} at {max_distance} m: {f:?} vs {e:?}"
                     );
                 }
+                last = Some(moved);
             }
             // The certificates did some of the work.
             assert!(kept > visits / 10, "{kept} of {visits} kept");
