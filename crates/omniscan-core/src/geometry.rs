@@ -139,6 +139,21 @@ pub fn pose_difference(a: &Pose, b: &Pose) -> (f64, f64) {
     (delta.rotation.angle(), delta.translation.vector.norm())
 }
 
+/// The rotation by `angle` radians about the line through `centre` along
+/// `axis`.
+pub fn rotation_about(
+    centre: &Point3<f64>,
+    axis: &nalgebra::Unit<Vector3<f64>>,
+    angle: f64,
+) -> Pose {
+    let about_origin = Isometry3::from_parts(
+        Translation3::identity(),
+        UnitQuaternion::from_axis_angle(axis, angle),
+    );
+    let to_centre = Isometry3::translation(centre.x, centre.y, centre.z);
+    to_centre * about_origin * to_centre.inverse()
+}
+
 /// Builds a rotation from orthonormal column vectors (x, y, z axes of the
 /// rotated frame expressed in the parent frame).
 pub fn rotation_from_axes(
@@ -162,6 +177,18 @@ mod tests {
         let back = pose_from_rows(&pose_to_rows(&pose)).unwrap();
         let (angle, dist) = pose_difference(&pose, &back);
         assert!(angle < 1e-12 && dist < 1e-12);
+    }
+
+    #[test]
+    fn rotation_about_a_line_keeps_the_line_and_turns_the_rest() {
+        let centre = Point3::new(1.0, 2.0, 3.0);
+        let axis = nalgebra::Unit::new_normalize(Vector3::z());
+        let turn = rotation_about(&centre, &axis, FRAC_PI_2);
+        let on_line = Point3::new(1.0, 2.0, 7.0);
+        assert!((turn * on_line - on_line).norm() < 1e-12);
+        // One unit along x from the line goes one unit along y.
+        let off = turn * Point3::new(2.0, 2.0, 3.0);
+        assert!((off - Point3::new(1.0, 3.0, 3.0)).norm() < 1e-12);
     }
 
     #[test]

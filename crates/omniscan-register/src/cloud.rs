@@ -17,6 +17,9 @@ use crate::RegisterError;
 use omniscan_core::Pose;
 use omniscan_core::ply::{Column, Element, Format, PlyFile, Property, ScalarType};
 
+/// A variance along a principal axis and the axis' unit direction.
+pub type PrincipalAxis = (f64, nalgebra::Unit<Vector3<f64>>);
+
 /// A point cloud. `colors` and `normals` are empty or one per point.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct PointCloud {
@@ -130,6 +133,27 @@ impl PointCloud {
     pub fn centroid(&self) -> Point3<f64> {
         let sum: Vector3<f64> = self.points.iter().map(|p| p.coords).sum();
         Point3::from(sum / self.points.len().max(1) as f64)
+    }
+
+    /// Principal axes through the centroid: the centroid, and the
+    /// variances along the axes (largest first) with their unit directions.
+    pub fn principal_axes(&self) -> (Point3<f64>, [PrincipalAxis; 3]) {
+        let centre = self.centroid();
+        let mut covariance = nalgebra::Matrix3::zeros();
+        for p in &self.points {
+            let d = p - centre;
+            covariance += d * d.transpose();
+        }
+        let eigen = nalgebra::SymmetricEigen::new(covariance / self.points.len().max(1) as f64);
+        let mut order = [0, 1, 2];
+        order.sort_by(|&a, &b| eigen.eigenvalues[b].total_cmp(&eigen.eigenvalues[a]));
+        let axes = order.map(|k| {
+            (
+                eigen.eigenvalues[k],
+                nalgebra::Unit::new_normalize(eigen.eigenvectors.column(k).into_owned()),
+            )
+        });
+        (centre, axes)
     }
 
     /// Length of the bounding-box diagonal.

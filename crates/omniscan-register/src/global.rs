@@ -294,27 +294,23 @@ pub fn auto_voxel(cloud: &PointCloud, target_points: usize) -> f64 {
 
 /// Half turns about the principal axes of a cloud, through its centroid.
 fn principal_half_turns(cloud: &PointCloud) -> Vec<Pose> {
-    let c = cloud.centroid();
-    let mut cov = nalgebra::Matrix3::zeros();
-    for p in &cloud.points {
-        let d = p - c;
-        cov += d * d.transpose();
-    }
-    let eig = nalgebra::SymmetricEigen::new(cov);
-    (0..3)
-        .map(|k| {
-            let axis = nalgebra::Unit::new_normalize(eig.eigenvectors.column(k).into_owned());
-            let turn = Pose::from_parts(
-                nalgebra::Translation3::identity(),
-                nalgebra::UnitQuaternion::from_axis_angle(&axis, std::f64::consts::PI),
-            );
-            Pose::translation(c.x, c.y, c.z) * turn * Pose::translation(-c.x, -c.y, -c.z)
+    let (centre, axes) = cloud.principal_axes();
+    axes.iter()
+        .map(|(_, axis)| {
+            omniscan_core::geometry::rotation_about(&centre, axis, std::f64::consts::PI)
         })
         .collect()
 }
 
-/// RMS difference of intensity over correspondences, when both clouds have colours.
-fn color_rmse(source: &PointCloud, target: &Target, max_distance: f64, pose: &Pose) -> Option<f64> {
+/// RMS difference of intensity over correspondences (source points moved by
+/// `pose` with a target point within `max_distance`), when both clouds have
+/// colours.
+pub fn color_rmse(
+    source: &PointCloud,
+    target: &Target,
+    max_distance: f64,
+    pose: &Pose,
+) -> Option<f64> {
     if !source.has_colors() || !target.cloud.has_colors() {
         return None;
     }
