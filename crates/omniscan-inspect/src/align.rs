@@ -415,10 +415,9 @@ impl Turns<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::generate::{CopySettings, good_copy};
+    use crate::generate::{CopySettings, good_copy, push_surface_splat};
     use crate::views::sphere_views;
     use omniscan_splat::orbit::robust_bounds;
-    use omniscan_splat::sh::C0;
 
     /// A capped cylinder 60 mm long and 24 mm across, along x: round about
     /// its axis, told apart only by a coloured label on part of its side
@@ -430,13 +429,7 @@ mod tests {
         };
         let (radius, half_length, spacing): (f64, f64, f64) = (0.012, 0.03, 0.0012);
         let mut push = |p: [f64; 3], normal_axis: usize, colour: [f64; 3]| {
-            model.means.push(p.map(|x| x as f32));
-            let mut log_scale = [(0.7 * spacing).ln() as f32; 3];
-            log_scale[normal_axis] = (0.1 * spacing).ln() as f32;
-            model.log_scales.push(log_scale);
-            model.quats.push([1.0, 0.0, 0.0, 0.0]);
-            model.opacity_logits.push(4.0);
-            model.sh.push(colour.map(|c| ((c - 0.5) / C0) as f32));
+            push_surface_splat(&mut model, p, normal_axis, spacing, colour)
         };
         // Quasi-random places (the R2 sequence), so ICP finds no lattice of
         // points to lock the turn onto.

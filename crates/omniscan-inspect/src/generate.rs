@@ -602,6 +602,25 @@ fn select(model: &Splats, indices: &[usize]) -> Splats {
     }
 }
 
+/// Adds to a procedural part an opaque splat at `p`, flat across
+/// `normal_axis` (0, 1, 2 for x, y, z), as wide as `spacing` lays them,
+/// of `colour` (0-1 RGB, SH degree 0).
+pub(crate) fn push_surface_splat(
+    model: &mut Splats,
+    p: [f64; 3],
+    normal_axis: usize,
+    spacing: f64,
+    colour: [f64; 3],
+) {
+    model.means.push(p.map(|x| x as f32));
+    let mut log_scale = [(0.7 * spacing).ln() as f32; 3];
+    log_scale[normal_axis] = (0.1 * spacing).ln() as f32;
+    model.log_scales.push(log_scale);
+    model.quats.push([1.0, 0.0, 0.0, 0.0]);
+    model.opacity_logits.push(4.0);
+    model.sh.push(colour.map(|c| ((c - 0.5) / C0) as f32));
+}
+
 /// A procedural test part: a box of `size` metres with opaque surface
 /// splats coloured by face, with a pattern, so registration and the
 /// visual comparison have something to hold on to. For tests.
@@ -631,13 +650,7 @@ pub fn test_part(size: [f64; 3], spacing: f64) -> Splats {
                         0.3 + 0.1 * stripe,
                     ];
                     let colour = base.map(|c| c * quadrant);
-                    model.means.push(p.map(|x| x as f32));
-                    let mut log_scale = [(0.7 * spacing).ln() as f32; 3];
-                    log_scale[axis] = (0.1 * spacing).ln() as f32;
-                    model.log_scales.push(log_scale);
-                    model.quats.push([1.0, 0.0, 0.0, 0.0]);
-                    model.opacity_logits.push(4.0);
-                    model.sh.push(colour.map(|c| ((c - 0.5) / C0) as f32));
+                    push_surface_splat(&mut model, p, axis, spacing, colour);
                 }
             }
         }
