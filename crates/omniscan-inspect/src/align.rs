@@ -124,6 +124,32 @@ fn appearance_distance(
     })
 }
 
+/// Which of `candidates` (poses of `model`, with their fitness) renders
+/// most like the reference; `None` when no render covers a pixel.
+fn most_alike(
+    model: &Splats,
+    candidates: &[&omniscan_register::icp::Registration],
+    views: &[View],
+    reference: &[crate::views::ViewRender],
+) -> Result<Option<usize>, InspectError> {
+    let scores: Vec<Result<f64, InspectError>> = candidates
+        .par_iter()
+        .map(|r| appearance_distance(model, &r.transformation, views, reference))
+        .collect();
+    let mut best = (f64::INFINITY, None);
+    for (i, score) in scores.into_iter().enumerate() {
+        let score = score?;
+        tracing::debug!(
+            "candidate {i}: fitness {:.4}, appearance {score:.4}",
+            candidates[i].fitness
+        );
+        if score < best.0 {
+            best = (score, Some(i));
+        }
+    }
+    Ok(best.1)
+}
+
 /// Aligns `model` (points `source`) to the reference (points `target`,
 /// renders `reference_renders` from `views`).
 pub fn align_model(
@@ -207,30 +233,11 @@ pub fn align_model(
     let mut method = result.best.method.to_string();
     let mut transform = result.best.registration.transformation;
     if ties.len() > 1 {
-        let scores: Vec<Result<f64, InspectError>> = ties
-            .par_iter()
-            .map(|c| {
-                appearance_distance(
-                    model,
-                    &c.registration.transformation,
-                    views,
-                    reference_renders,
-                )
-            })
-            .collect();
-        let mut best = (f64::INFINITY, 0);
-        for (i, s) in scores.into_iter().enumerate() {
-            let s = s?;
-            tracing::debug!(
-                "twin {i}: fitness {:.4}, appearance {s:.4}",
-                ties[i].registration.fitness
-            );
-            if s < best.0 {
-                best = (s, i);
-            }
-        }
-        method = ties[best.1].method.to_string();
-        transform = ties[best.1].registration.transformation;
+        let registrations: Vec<&omniscan_register::icp::Registration> =
+            ties.iter().map(|c| &c.registration).collect();
+        let best = most_alike(model, &registrations, views, reference_renders)?.unwrap_or(0);
+        method = ties[best].method.to_string();
+        transform = ties[best].registration.transformation;
     }
     let spacing = omniscan_register::global::median_spacing(target);
     let max_distance = (3.0 * spacing).max(0.4 * result.voxel);
@@ -361,11 +368,10 @@ impl Turns<'_> {
             })
             .collect::<Result<_, _>>()?;
         let best_fitness = turned.iter().map(|r| r.fitness).fold(0.0, f64::max);
-        let mut contenders: Vec<&omniscan_register::icp::Registration> = turned
+        let contenders: Vec<&omniscan_register::icp::Registration> = turned
             .iter()
             .filter(|r| r.fitness >= best_fitness - 0.03)
             .collect();
-        let contending = contenders.len();
         if let [only] = contenders[..] {
             return Ok((only.transformation, 1));
         }
@@ -384,31 +390,14 @@ impl Turns<'_> {
         let mut by_colour: Vec<(f64, &omniscan_register::icp::Registration)> =
             contenders.iter().map(|&r| (colour(r), r)).collect();
         by_colour.sort_by(|a, b| a.0.total_cmp(&b.0));
-        contenders = by_colour
+        let rendered: Vec<&omniscan_register::icp::Registration> = by_colour
             .into_iter()
             .take(RENDERED_TURNS)
             .map(|(_, r)| r)
             .collect();
-        let scores: Vec<Result<f64, InspectError>> = contenders
-            .par_iter()
-            .map(|r| {
-                appearance_distance(
-                    self.model,
-                    &r.transformation,
-                    self.views,
-                    self.reference_renders,
-                )
-            })
-            .collect();
-        let mut best = (f64::INFINITY, *start);
-        for (r, score) in contenders.iter().zip(scores) {
-            let score = score?;
-            tracing::debug!("turn: fitness {:.4}, appearance {score:.4}", r.fitness);
-            if score < best.0 {
-                best = (score, r.transformation);
-            }
-        }
-        Ok((best.1, contending))
+        let best = most_alike(self.model, &rendered, self.views, self.reference_renders)?
+            .map_or(*start, |i| rendered[i].transformation);
+        Ok((best, contenders.len()))
     }
 }
 
