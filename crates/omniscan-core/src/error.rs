@@ -6,11 +6,12 @@ use std::path::PathBuf;
 /// An error from reading or writing omniscan files.
 #[derive(Debug, thiserror::Error)]
 pub enum CoreError {
-    #[error("{path}: {source}")]
+    /// The cause is in the message and not chained as a `source` too, or
+    /// a report that prints the chain (`{:#}`) would say it twice.
+    #[error("{path}: {cause}")]
     Io {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     #[error("{path}: {message}")]
     Parse { path: PathBuf, message: String },
@@ -43,10 +44,10 @@ fn format_problems(problems: &[String]) -> String {
 }
 
 impl CoreError {
-    pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+    pub fn io(path: impl Into<PathBuf>, cause: std::io::Error) -> Self {
         CoreError::Io {
             path: path.into(),
-            source,
+            cause,
         }
     }
     pub fn parse(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
@@ -64,3 +65,25 @@ impl CoreError {
 }
 
 pub type Result<T, E = CoreError> = std::result::Result<T, E>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_missing_file_is_named_with_its_cause_once() {
+        let path = std::path::Path::new("/nonexistent/model.ply");
+        let error = CoreError::io(path, std::fs::read(path).unwrap_err());
+        let text = error.to_string();
+        assert!(text.starts_with("/nonexistent/model.ply: "), "{text}");
+        // A report that walks the source chain must not repeat the cause.
+        let mut chain = text.clone();
+        let mut source = std::error::Error::source(&error);
+        while let Some(s) = source {
+            chain.push_str(&format!(": {s}"));
+            source = s.source();
+        }
+        let cause = std::fs::read(path).unwrap_err().to_string();
+        assert_eq!(chain.matches(&cause).count(), 1, "{chain}");
+    }
+}

@@ -773,6 +773,22 @@ fn densify(
     *s = out;
 }
 
+/// Splits views into training and held-out ones: every `every`-th view is
+/// held out, starting with the first (the convention of the original 3DGS
+/// code and gsplat, `i % 8 == 0`, so figures compare with theirs); 0 holds
+/// out nothing.
+pub fn split_held_out<T>(views: Vec<T>, every: usize) -> (Vec<T>, Vec<T>) {
+    let (mut train, mut held_out) = (Vec::new(), Vec::new());
+    for (i, v) in views.into_iter().enumerate() {
+        if every > 0 && i % every == 0 {
+            held_out.push(v);
+        } else {
+            train.push(v);
+        }
+    }
+    (train, held_out)
+}
+
 /// Training views from a capture: images, object masks and gripper masks
 /// (the frames' own masks, else the simulator's ground truth), cameras in the
 /// reconstruction frame of `set`, images shrunk by `downscale` (box filter).
@@ -1081,6 +1097,16 @@ pub fn views_from_cameras_json(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn every_eighth_view_from_the_first_is_held_out() {
+        let (train, held_out) = split_held_out((0..17).collect(), 8);
+        assert_eq!(held_out, vec![0, 8, 16]);
+        assert_eq!(train.len(), 14);
+        assert!(!train.contains(&0) && train.contains(&7));
+        let (train, held_out) = split_held_out((0..5).collect::<Vec<usize>>(), 0);
+        assert_eq!((train.len(), held_out.len()), (5, 0));
+    }
 
     /// Four 48x36 views of a random scene, and a different scene to start from.
     fn problem() -> (Vec<View>, Splats) {

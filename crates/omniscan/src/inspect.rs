@@ -15,6 +15,7 @@ use serde_json::json;
 use omniscan_inspect::closeup::CloseUpSettings;
 use omniscan_inspect::generate::{CopySettings, DefectKind, good_copy, plant_defect};
 use omniscan_inspect::report::write_report;
+use omniscan_inspect::verdict::Verdict;
 use omniscan_inspect::{InspectSettings, inspect};
 use omniscan_splat::Splats;
 use omniscan_splat::ply::{read_splats, write_splats};
@@ -268,7 +269,7 @@ pub struct BenchArgs {
     pub json: bool,
 }
 
-const LABELS: [&str; 4] = ["A", "B", "C", "none"];
+pub(crate) const LABELS: [&str; 4] = ["A", "B", "C", "none"];
 
 fn list_models(dir: &Path) -> Result<Vec<PathBuf>> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
@@ -281,6 +282,28 @@ fn list_models(dir: &Path) -> Result<Vec<PathBuf>> {
         bail!("{}: no .ply models", dir.display());
     }
     Ok(files)
+}
+
+/// Whether `verdict` names `defective` and one of its significant regions
+/// reaches the true defect at `centre` (reference frame, model units): its
+/// centroid within half its extent plus the defect's size.
+pub(crate) fn defect_located(
+    verdict: &Verdict,
+    defective: usize,
+    centre: &Point3<f64>,
+    size_mm: f64,
+    units_per_metre: f64,
+) -> bool {
+    verdict.defective == Some(defective)
+        && verdict
+            .regions
+            .iter()
+            .filter(|r| r.significant && r.model == defective)
+            .any(|r| {
+                let distance_mm =
+                    (Point3::from(r.centroid) - centre).norm() * 1000.0 / units_per_metre;
+                distance_mm <= 0.5 * r.extent_mm + size_mm
+            })
 }
 
 pub fn bench(args: BenchArgs) -> Result<()> {
@@ -424,20 +447,15 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                     }),
                 });
                 let predicted = v.defective.unwrap_or(3);
-                let is_located = match (&planted, v.defective) {
-                    (Some(d), Some(p)) if p == slot => {
-                        let centre = poses[0] * Point3::from(d.centre);
-                        v.regions
-                            .iter()
-                            .filter(|r| r.significant && r.model == p)
-                            .any(|r| {
-                                let distance_mm =
-                                    (Point3::from(r.centroid) - centre).norm() * 1000.0 / units;
-                                distance_mm <= 0.5 * r.extent_mm + d.size_mm
-                            })
-                    }
-                    _ => false,
-                };
+                let is_located = planted.as_ref().is_some_and(|d| {
+                    defect_located(
+                        v,
+                        slot,
+                        &(poses[0] * Point3::from(d.centre)),
+                        d.size_mm,
+                        *units,
+                    )
+                });
                 if let Some(dir) = &args.out {
                     let names: Vec<PathBuf> = (0..3)
                         .map(|k| PathBuf::from(format!("{name}_{}", ["A", "B", "C"][k])))

@@ -5,6 +5,7 @@ mod inspect;
 mod mask;
 mod registration;
 mod render;
+mod scan_bench;
 mod splat_bench;
 mod train;
 
@@ -101,6 +102,8 @@ enum BenchCommand {
     Mask(mask::BenchArgs),
     /// Inspection accuracy and time on triplets of generated good and defective copies.
     Inspect(inspect::BenchArgs),
+    /// Inspection of independently scanned copies: simulated scans (a defect planted in one copy's mesh), a twin trained per scan, the three twins inspected.
+    Scans(scan_bench::BenchArgs),
     /// Rasterizer time per view: CPU forward and forward+backward, GPU forward, on random scenes or models.
     Splat(splat_bench::BenchArgs),
     /// Time a full simulated capture: both arms' trajectories plus the empty pass.
@@ -128,7 +131,7 @@ enum ArmChoice {
 }
 
 #[derive(Args, Clone)]
-struct PlanArgs {
+pub(crate) struct PlanArgs {
     /// Wrist angles per latitude.
     #[arg(long, default_value_t = 20)]
     wrist_angles: u32,
@@ -144,7 +147,7 @@ struct PlanArgs {
 }
 
 impl PlanArgs {
-    fn config(&self) -> ScanPlanConfig {
+    pub(crate) fn config(&self) -> ScanPlanConfig {
         ScanPlanConfig {
             wrist_angles: self.wrist_angles,
             latitudes: self.latitudes,
@@ -448,6 +451,9 @@ fn run(cli: Cli) -> Result<()> {
         Command::Bench {
             which: BenchCommand::Inspect(args),
         } => inspect::bench(args)?,
+        Command::Bench {
+            which: BenchCommand::Scans(args),
+        } => scan_bench::bench(args)?,
         Command::Render(args) => render::run(args)?,
         Command::Bench {
             which: BenchCommand::Splat(args),

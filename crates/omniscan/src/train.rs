@@ -11,8 +11,8 @@ use omniscan_core::capture::{Arm, Capture};
 use omniscan_core::poses::ViewSet;
 use omniscan_splat::ply::write_splats;
 use omniscan_splat::train::{
-    Checkpoints, Start, TrainConfig, initial_splats, splats_from_points, train, train_resumable,
-    views_from_capture,
+    Checkpoints, Start, TrainConfig, initial_splats, splats_from_points, split_held_out, train,
+    train_resumable, views_from_capture,
 };
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -37,7 +37,7 @@ pub struct TrainArgs {
     /// Shrink images by this integer factor (2: 640x480 → 320x240).
     #[arg(long, default_value_t = 2)]
     pub downscale: u32,
-    /// Every n-th view is held out from training and used for evaluation.
+    /// Every n-th view, from the first, is held out from training and used for evaluation (as 3DGS and gsplat do); 0 holds out none.
     #[arg(long, default_value_t = 8)]
     pub hold_out_every: usize,
     #[arg(long, default_value_t = 0)]
@@ -74,14 +74,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         bail!("--sh-degree must be 0-3");
     }
     let all = load_views(&args.capture, args.arm, args.downscale)?;
-    let (mut train_views, mut test_views) = (Vec::new(), Vec::new());
-    for (i, v) in all.into_iter().enumerate() {
-        if args.hold_out_every > 0 && i % args.hold_out_every == args.hold_out_every - 1 {
-            test_views.push(v);
-        } else {
-            train_views.push(v);
-        }
-    }
+    let (train_views, test_views) = split_held_out(all, args.hold_out_every);
     let start = Instant::now();
     let config = TrainConfig {
         seed: args.seed,
@@ -334,14 +327,7 @@ pub fn train_merged(
     downscale: u32,
 ) -> Result<serde_json::Value> {
     let all = views_from_capture(capture, ViewSet::Merged { right_to_left }, downscale)?;
-    let (mut train_views, mut test_views) = (Vec::new(), Vec::new());
-    for (i, v) in all.into_iter().enumerate() {
-        if i % 8 == 7 {
-            test_views.push(v)
-        } else {
-            train_views.push(v)
-        }
-    }
+    let (train_views, test_views) = split_held_out(all, 8);
     let init = initial_splats(&train_views, 4000, 3, 0)?;
     let config = TrainConfig {
         sh_interval: steps / 4,

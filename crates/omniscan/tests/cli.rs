@@ -585,3 +585,68 @@ fn mask_writes_masks_records_them_and_reports_iou_per_arm() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("--sam-decoder"));
 }
+
+#[test]
+fn scan_bench_inspects_independently_trained_twins_and_resumes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("scans");
+    let run = || -> serde_json::Value {
+        let o = omniscan(&[
+            "bench",
+            "scans",
+            "--out",
+            out.to_str().unwrap(),
+            "--objects",
+            "remote",
+            "--trials",
+            "1",
+            "--good-trials",
+            "0",
+            "--width",
+            "160",
+            "--height",
+            "120",
+            "--supersample",
+            "1",
+            "--wrist-angles",
+            "6",
+            "--latitudes",
+            "3",
+            "--steps",
+            "40",
+            "--downscale",
+            "1",
+            "--views",
+            "12",
+            "--json",
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        serde_json::from_slice(&o.stdout).unwrap()
+    };
+    let first = run();
+    assert_eq!(first["trials"], 1);
+    let row = &first["rows"][0];
+    assert!(
+        ["A", "B", "C"].contains(&row["truth"].as_str().unwrap()),
+        "{row}"
+    );
+    // Each twin is scanned with its own grasp: the ground truth's alignment
+    // of the reference onto itself is exact, the others' errors are reported.
+    let errors = row["diagnostics"]["alignment_error_deg_mm"]
+        .as_array()
+        .unwrap();
+    assert_eq!(errors.len(), 3);
+    assert!(errors[0][0].as_f64().unwrap() < 1e-6, "{errors:?}");
+    assert!(errors[1][0].as_f64().unwrap().is_finite());
+    assert!(out.join("trial_000/report/verdict.json").exists());
+    assert!(out.join("bench.json").exists());
+    // A second run reuses the captures and twins.
+    let twin = out.join("trial_000/B/twin.ply");
+    let written = std::fs::metadata(&twin).unwrap().modified().unwrap();
+    let second = run();
+    assert_eq!(
+        std::fs::metadata(&twin).unwrap().modified().unwrap(),
+        written
+    );
+    assert_eq!(second["rows"][0]["predicted"], row["predicted"]);
+}
