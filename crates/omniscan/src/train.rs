@@ -37,7 +37,7 @@ pub struct TrainArgs {
     /// Shrink images by this integer factor (2: 640x480 → 320x240).
     #[arg(long, default_value_t = 2)]
     pub downscale: u32,
-    /// Every n-th view, from the first, is held out from training and used for evaluation (as 3DGS and gsplat do); 0 holds out none.
+    /// Every n-th view (the n-th, the 2n-th, ...) is held out from training and used for evaluation; 0 holds out none.
     #[arg(long, default_value_t = 8)]
     pub hold_out_every: usize,
     #[arg(long, default_value_t = 0)]
