@@ -12,11 +12,12 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::json;
 
+use omniscan_core::Pose;
 use omniscan_inspect::closeup::CloseUpSettings;
 use omniscan_inspect::generate::{CopySettings, DefectKind, good_copy, plant_defect};
 use omniscan_inspect::report::write_report;
 use omniscan_inspect::verdict::Verdict;
-use omniscan_inspect::{InspectSettings, inspect};
+use omniscan_inspect::{InspectSettings, Inspection, inspect};
 use omniscan_splat::Splats;
 use omniscan_splat::ply::{read_splats, write_splats};
 
@@ -284,6 +285,26 @@ fn list_models(dir: &Path) -> Result<Vec<PathBuf>> {
     Ok(files)
 }
 
+/// Each model's alignment error against the truth (degrees, millimetres),
+/// where `poses[k]` takes a common frame into model k's (`units_per_metre`),
+/// so model k's frame maps into the reference's by pose_0 · pose_k⁻¹.
+pub(crate) fn alignment_errors(
+    inspection: &Inspection,
+    poses: &[Pose],
+    units_per_metre: f64,
+) -> Vec<[f64; 2]> {
+    inspection
+        .alignments
+        .iter()
+        .zip(poses)
+        .map(|(a, pose)| {
+            let truth = poses[0] * pose.inverse();
+            let (angle, shift) = omniscan_core::geometry::pose_difference(&a.transform, &truth);
+            [angle.to_degrees(), shift * 1000.0 / units_per_metre]
+        })
+        .collect()
+}
+
 /// Whether `verdict` names `defective` and one of its significant regions
 /// reaches the true defect at `centre` (reference frame, model units): its
 /// centroid within half its extent plus the defect's size.
@@ -406,19 +427,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         let (predicted, found_type, is_located, error) = match &outcome {
             Ok(inspection) => {
                 let v = &inspection.verdict;
-                // Alignment error against the truth: model k's frame maps
-                // into the reference's by pose_0 · pose_k⁻¹.
-                let alignment_error: Vec<[f64; 2]> = inspection
-                    .alignments
-                    .iter()
-                    .zip(&poses)
-                    .map(|(a, pose)| {
-                        let truth = poses[0] * pose.inverse();
-                        let (angle, shift) =
-                            omniscan_core::geometry::pose_difference(&a.transform, &truth);
-                        [angle.to_degrees(), shift * 1000.0 / units]
-                    })
-                    .collect();
+                let alignment_error = alignment_errors(inspection, &poses, *units);
                 diagnostics = json!({
                     "alignment_error_deg_mm": alignment_error,
                     "regions": v.regions.iter().take(8).collect::<Vec<_>>(),

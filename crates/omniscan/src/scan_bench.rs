@@ -31,7 +31,7 @@ use omniscan_inspect::{InspectSettings, inspect};
 use omniscan_sim::SimConfig;
 use omniscan_splat::ply::read_splats;
 
-use crate::inspect::{LABELS, defect_located};
+use crate::inspect::{LABELS, alignment_errors, defect_located};
 
 #[derive(clap::Args)]
 pub struct BenchArgs {
@@ -225,19 +225,8 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         let (predicted, found_type, is_located, diagnostics) = match &outcome {
             Ok(inspection) => {
                 let v = &inspection.verdict;
-                // Twin k's frame maps into the reference twin's by
-                // T_o→0 · T_o→k⁻¹ (both from the object's frame).
-                let alignment_error: Vec<[f64; 2]> = inspection
-                    .alignments
-                    .iter()
-                    .zip(&poses)
-                    .map(|(a, pose)| {
-                        let truth = poses[0] * pose.inverse();
-                        let (angle, shift) =
-                            omniscan_core::geometry::pose_difference(&a.transform, &truth);
-                        [angle.to_degrees(), shift * 1000.0]
-                    })
-                    .collect();
+                // The poses take the object's frame into each twin's.
+                let alignment_error = alignment_errors(inspection, &poses, 1.0);
                 let size_mm = trial.defect.as_ref().map_or(0.0, |d| d.2);
                 let is_located = defect_centre
                     .is_some_and(|c| defect_located(v, trial.slot, &(poses[0] * c), size_mm, 1.0));
