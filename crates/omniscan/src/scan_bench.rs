@@ -128,19 +128,30 @@ fn twin(
     let capture_dir = dir.join("capture");
     let model = dir.join("twin.ply");
     if !capture_dir.join("capture.json").exists() {
-        let config = SimConfig {
-            object: format!("builtin:{object}"),
-            width: args.width,
-            height: args.height,
-            seed,
-            defect,
-            supersample: args.supersample,
-            plan: args.plan.config(),
-            // The benchmark trains on the simulator's masks: no empty pass needed.
-            empty_pass: false,
-            ..SimConfig::default()
-        };
-        crate::simulate(config, &capture_dir)?;
+        // A large defect may find no place on a small part away from the
+        // fingers with one grasp: other seeds give other grasps and places.
+        let attempts = if defect.is_some() { 6 } else { 1 };
+        for attempt in 0..attempts {
+            let config = SimConfig {
+                object: format!("builtin:{object}"),
+                width: args.width,
+                height: args.height,
+                seed: seed + 1000 * attempt,
+                defect: defect.clone(),
+                supersample: args.supersample,
+                plan: args.plan.config(),
+                // The benchmark trains on the simulator's masks: no empty pass needed.
+                empty_pass: false,
+                ..SimConfig::default()
+            };
+            match crate::simulate(config, &capture_dir) {
+                Ok(_) => break,
+                Err(e) if attempt + 1 < attempts && !capture_dir.exists() => {
+                    eprintln!("    {e:#}; another seed");
+                }
+                Err(e) => return Err(e),
+            }
+        }
     }
     let capture = Capture::load(&capture_dir)?;
     if !model.exists() {
