@@ -179,7 +179,8 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     let (mut correct, mut located, mut defect_trials) = (0usize, 0usize, 0usize);
     let mut rows = Vec::new();
     let mut times = Vec::new();
-    for (t, trial) in trials.iter().enumerate() {
+    let mut skipped = Vec::new();
+    'trials: for (t, trial) in trials.iter().enumerate() {
         let dir = args.out.join(format!("trial_{t:03}"));
         let mut models = Vec::new();
         let mut poses = Vec::new();
@@ -196,13 +197,25 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 k + 1,
                 defect.as_ref().map_or(String::new(), |d| format!(" ({d})"))
             );
-            let (path, capture) = twin(
+            let scanned = twin(
                 &dir.join(label),
                 &trial.object,
                 trial.seeds[k],
                 defect.clone(),
                 &args,
-            )?;
+            );
+            let (path, capture) = match scanned {
+                Ok(twin) => twin,
+                // A part too small for the defect's size is a skipped trial, not a failed run.
+                Err(e) if defect.is_some() && !dir.join(label).join("capture").exists() => {
+                    eprintln!("trial {t}: skipped: {e:#}");
+                    skipped.push(
+                        json!({ "trial": t, "object": trial.object, "reason": format!("{e:#}") }),
+                    );
+                    continue 'trials;
+                }
+                Err(e) => return Err(e),
+            };
             let pose = object_to_model(&capture, &path)?;
             if defect.is_some() {
                 let centre = capture
@@ -285,7 +298,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             LABELS[truth], LABELS[predicted]
         );
     }
-    let total = trials.len();
+    let total = rows.len();
     let report = json!({
         "trials": total,
         "correct": correct,
@@ -295,6 +308,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         "confusion": confusion,
         "mean_seconds": times.iter().sum::<f64>() / times.len().max(1) as f64,
         "rows": rows,
+        "skipped": skipped,
     });
     omniscan_core::io::write_atomic(
         &args.out.join("bench.json"),
