@@ -285,6 +285,46 @@ fn list_models(dir: &Path) -> Result<Vec<PathBuf>> {
     Ok(files)
 }
 
+/// A benchmark's verdicts counted against the truth.
+#[derive(Default)]
+pub(crate) struct Score {
+    /// confusion[truth][predicted], index 3 = none.
+    pub confusion: [[usize; 4]; 4],
+    pub correct: usize,
+    pub located: usize,
+    pub defect_trials: usize,
+    pub total: usize,
+}
+
+impl Score {
+    pub fn add(&mut self, truth: usize, predicted: usize, has_defect: bool, located: bool) {
+        self.confusion[truth][predicted] += 1;
+        self.correct += usize::from(predicted == truth);
+        self.total += 1;
+        if has_defect {
+            self.defect_trials += 1;
+            self.located += usize::from(located);
+        }
+    }
+    pub fn accuracy(&self) -> f64 {
+        self.correct as f64 / self.total.max(1) as f64
+    }
+    pub fn located_share(&self) -> f64 {
+        self.located as f64 / self.defect_trials.max(1) as f64
+    }
+    /// The report's counts (`correct`, `accuracy`, `located`,
+    /// `located_share`, `confusion`), for the caller to add its own keys to.
+    pub fn summary(&self) -> serde_json::Value {
+        json!({
+            "correct": self.correct,
+            "accuracy": self.accuracy(),
+            "located": self.located,
+            "located_share": self.located_share(),
+            "confusion": self.confusion,
+        })
+    }
+}
+
 /// Each model's alignment error against the truth (degrees, millimetres),
 /// where `poses[k]` takes a common frame into model k's (`units_per_metre`),
 /// so model k's frame maps into the reference's by pose_0 · pose_k⁻¹.
@@ -351,10 +391,8 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             .expect("valid template"),
     );
     let mut rng = ChaCha8Rng::seed_from_u64(args.seed);
-    // confusion[truth][predicted], index 3 = none.
-    let mut confusion = [[0usize; 4]; 4];
+    let mut score = Score::default();
     let mut rows = Vec::new();
-    let (mut correct, mut located, mut defect_trials) = (0usize, 0usize, 0usize);
     let mut times = Vec::new();
     for t in 0..all {
         let (path, units, model) = &loaded[t % loaded.len()];
@@ -480,16 +518,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             }
             Err(e) => (3, "error".to_string(), false, Some(e.to_string())),
         };
-        confusion[truth][predicted] += 1;
-        if predicted == truth {
-            correct += 1;
-        }
-        if has_defect {
-            defect_trials += 1;
-            if is_located {
-                located += 1;
-            }
-        }
+        score.add(truth, predicted, has_defect, is_located);
         rows.push(json!({
             "model": name,
             "defect": if has_defect { Some(kind.name()) } else { None },
@@ -510,20 +539,12 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     let mean_time = times.iter().sum::<f64>() / times.len().max(1) as f64;
     let max_time = times.iter().copied().fold(0.0, f64::max);
     if args.json {
-        println!(
-            "{}",
-            serde_json::to_string_pretty(&json!({
-                "triplets": total,
-                "correct": correct,
-                "accuracy": correct as f64 / total.max(1) as f64,
-                "located": located,
-                "located_share": located as f64 / defect_trials.max(1) as f64,
-                "confusion": confusion,
-                "mean_seconds": mean_time,
-                "max_seconds": max_time,
-                "trials": rows,
-            }))?
-        );
+        let mut report = score.summary();
+        report["triplets"] = total.into();
+        report["mean_seconds"] = mean_time.into();
+        report["max_seconds"] = max_time.into();
+        report["trials"] = rows.into();
+        println!("{}", serde_json::to_string_pretty(&report)?);
         return Ok(());
     }
     for r in &rows {
@@ -546,7 +567,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     }
     println!("\nconfusion (rows = truth, columns = predicted):");
     println!("{:>6} {}", "", LABELS.map(|l| format!("{l:>6}")).join(""));
-    for (i, row) in confusion.iter().enumerate() {
+    for (i, row) in score.confusion.iter().enumerate() {
         println!(
             "{:>6} {}",
             LABELS[i],
@@ -554,10 +575,13 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         );
     }
     println!(
-        "correct {correct}/{total} ({:.1}%), defect inside a reported region {located}/{defect_trials} ({:.1}%), \
+        "correct {}/{total} ({:.1}%), defect inside a reported region {}/{} ({:.1}%), \
          {mean_time:.1} s per triplet (max {max_time:.1} s)",
-        100.0 * correct as f64 / total.max(1) as f64,
-        100.0 * located as f64 / defect_trials.max(1) as f64
+        score.correct,
+        100.0 * score.accuracy(),
+        score.located,
+        score.defect_trials,
+        100.0 * score.located_share()
     );
     Ok(())
 }

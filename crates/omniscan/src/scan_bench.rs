@@ -31,7 +31,7 @@ use omniscan_inspect::{InspectSettings, inspect};
 use omniscan_sim::SimConfig;
 use omniscan_splat::ply::read_splats;
 
-use crate::inspect::{LABELS, alignment_errors, defect_located};
+use crate::inspect::{LABELS, Score, alignment_errors, defect_located};
 
 #[derive(clap::Args)]
 pub struct BenchArgs {
@@ -87,7 +87,7 @@ const VISUAL: [(&str, f64, f64); 2] = [("tape", 3.0, 10.0), ("scratch", 4.0, 10.
 /// One trial's plan, drawn from the benchmark's seed.
 struct Trial {
     object: String,
-    defect: Option<(String, &'static str, f64)>,
+    defect: Option<(&'static str, &'static str, f64)>,
     slot: usize,
     seeds: [u64; 3],
 }
@@ -105,7 +105,7 @@ fn plan(args: &BenchArgs) -> Result<Vec<Trial>> {
                 } else {
                     ("visual", VISUAL[(t / 2) % VISUAL.len()])
                 };
-                (category.to_string(), kind, rng.random_range(low..high))
+                (category, kind, rng.random_range(low..high))
             });
             Trial {
                 object: args.objects[t % args.objects.len()].clone(),
@@ -175,8 +175,7 @@ fn object_to_model(capture: &Capture, path: &Path) -> Result<Pose> {
 
 pub fn bench(args: BenchArgs) -> Result<()> {
     let trials = plan(&args)?;
-    let mut confusion = [[0usize; 4]; 4];
-    let (mut correct, mut located, mut defect_trials) = (0usize, 0usize, 0usize);
+    let mut score = Score::default();
     let mut rows = Vec::new();
     let mut times = Vec::new();
     let mut skipped = Vec::new();
@@ -275,12 +274,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 json!({ "error": e.to_string() }),
             ),
         };
-        confusion[truth][predicted] += 1;
-        correct += usize::from(predicted == truth);
-        if trial.defect.is_some() {
-            defect_trials += 1;
-            located += usize::from(is_located);
-        }
+        score.add(truth, predicted, trial.defect.is_some(), is_located);
         rows.push(json!({
             "trial": t,
             "object": trial.object,
@@ -298,18 +292,11 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             LABELS[truth], LABELS[predicted]
         );
     }
-    let total = rows.len();
-    let report = json!({
-        "trials": total,
-        "correct": correct,
-        "accuracy": correct as f64 / total.max(1) as f64,
-        "located": located,
-        "located_share": located as f64 / defect_trials.max(1) as f64,
-        "confusion": confusion,
-        "mean_seconds": times.iter().sum::<f64>() / times.len().max(1) as f64,
-        "rows": rows,
-        "skipped": skipped,
-    });
+    let mut report = score.summary();
+    report["trials"] = score.total.into();
+    report["mean_seconds"] = (times.iter().sum::<f64>() / times.len().max(1) as f64).into();
+    report["rows"] = rows.into();
+    report["skipped"] = skipped.into();
     omniscan_core::io::write_atomic(
         &args.out.join("bench.json"),
         serde_json::to_string_pretty(&report)?.as_bytes(),
@@ -318,7 +305,8 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
         println!(
-            "{correct}/{total} correct, {located}/{defect_trials} located; confusion (rows = truth A, B, C, none): {confusion:?}"
+            "{}/{} correct, {}/{} located; confusion (rows = truth A, B, C, none): {:?}",
+            score.correct, score.total, score.located, score.defect_trials, score.confusion
         );
     }
     Ok(())
