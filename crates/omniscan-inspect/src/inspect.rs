@@ -15,7 +15,11 @@ use crate::closeup::{CloseUp, CloseUpSettings, look_closer};
 use crate::differencing::{
     PixelComparison, compare_pixels, depth_evidence, geometric_evidence, merge, visual_evidence,
 };
-use crate::verdict::{Kind, PairEvidence, Verdict, VerdictSettings, find_regions, name_defective};
+use crate::photometric::{ColourCorrection, match_colours};
+use crate::verdict::{
+    Kind, PairEvidence, Verdict, VerdictSettings, apply_noise_floors, find_regions, name_defective,
+    noise_floors,
+};
 use crate::views::{View, ViewRender, render_views, render_views_on, sphere_views, surface_points};
 use omniscan_splat::backend::{Backend, Renderer};
 
@@ -43,6 +47,11 @@ pub struct InspectSettings {
     /// triplets measured with `omniscan bench inspect --seed 1`).
     pub min_geometric_area_mm2: Option<f64>,
     pub min_visual_area_mm2: f64,
+    /// Radius over which a model's surface colours are matched to the
+    /// reference's before visual differencing, millimetres; `None`: raw
+    /// colours (see [`crate::photometric`]). Twice the largest visual
+    /// defect the inspection should still see at full contrast.
+    pub photometric_radius_mm: Option<f64>,
     /// Indices of models known to be good; `None` = any model may be defective.
     pub references: Option<Vec<usize>>,
     pub align: AlignSettings,
@@ -66,6 +75,7 @@ impl Default for InspectSettings {
             spacing_mm: 1.0,
             min_geometric_area_mm2: None,
             min_visual_area_mm2: 8.0,
+            photometric_radius_mm: Some(15.0),
             references: None,
             align: AlignSettings::default(),
             close_up: None,
@@ -91,8 +101,11 @@ pub struct Inspection {
     pub views: Vec<View>,
     /// Per model, its renders of every view (after alignment).
     pub renders: Vec<Vec<ViewRender>>,
-    /// Per model, its visible surface in the reference frame.
+    /// Per model, its visible surface in the reference frame, colours
+    /// matched to the reference's.
     pub surfaces: Vec<PointCloud>,
+    /// Per model, how its colours were matched to the reference's.
+    pub colour_corrections: Vec<ColourCorrection>,
     pub pixels: Vec<PixelComparison>,
     pub pairs: Vec<PairEvidence>,
     /// Places of small geometric differences looked at again.
@@ -273,10 +286,24 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
         .map(|m| render_views_on(&renderer, m, &views))
         .collect::<Result<_, _>>()?;
     let spacing = settings.spacing_mm * unit;
-    let surfaces: Vec<PointCloud> = renders
+    let mut surfaces: Vec<PointCloud> = renders
         .par_iter()
         .map(|r| surface_points(r, &views, spacing))
         .collect();
+    let mut colour_corrections = vec![ColourCorrection::identity(0)];
+    let (reference_surface, others) = surfaces.split_at_mut(1);
+    colour_corrections.extend(others.iter_mut().enumerate().map(|(k, surface)| {
+        match settings.photometric_radius_mm {
+            Some(radius) if radius > 0.0 => match_colours(
+                k + 1,
+                &reference_surface[0],
+                surface,
+                1.5 * spacing,
+                radius * unit,
+            ),
+            _ => ColourCorrection::identity(k + 1),
+        }
+    }));
     let render_done = Instant::now();
 
     let threshold = settings.threshold_mm * unit;
@@ -310,7 +337,13 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
             .unwrap_or(std::f64::consts::PI * (0.5 * settings.threshold_mm).powi(2)),
         min_visual_area_mm2: settings.min_visual_area_mm2,
     };
-    let mut regions = find_regions(&candidates, &pairs, &verdict_settings);
+    // Every model's regions, references too: they measure how much good
+    // copies differ (the noise floors).
+    let every: Vec<usize> = (0..models.len()).collect();
+    let mut regions = find_regions(&every, &pairs, &verdict_settings);
+    let floors = noise_floors(models.len(), &regions);
+    regions.retain(|r| candidates.contains(&r.model));
+    apply_noise_floors(&mut regions, &floors);
     let compare_done = Instant::now();
     let close_ups = match &settings.close_up {
         Some(close_up) => look_closer(
@@ -339,6 +372,7 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
             regions.push(region.clone());
         }
     }
+    apply_noise_floors(&mut regions, &floors);
     let verdict = name_defective(
         models.len(),
         &candidates,
@@ -352,6 +386,7 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
         views,
         renders,
         surfaces,
+        colour_corrections,
         pixels,
         pairs,
         close_ups,

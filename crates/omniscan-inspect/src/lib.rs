@@ -13,7 +13,9 @@
 //! pixels whose depth along the same ray differs by more than it), and a
 //! difference counts against a model only where that model
 //! disagrees with every other copy while the others agree with each other.
-//! Such points are clustered into regions; the model with significant
+//! Colours are compared after matching each model's to the first's with a
+//! slowly varying gain (lighting is baked into each scan, see
+//! [`photometric`]). Such points are clustered into regions; the model with significant
 //! regions is the defective one, and none is named when no model has any.
 //! See [`verdict`] for the rule.
 
@@ -26,6 +28,7 @@ pub mod closeup;
 pub mod differencing;
 pub mod generate;
 pub mod inspect;
+pub mod photometric;
 pub mod report;
 pub mod verdict;
 pub mod views;

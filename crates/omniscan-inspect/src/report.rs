@@ -19,6 +19,7 @@ use omniscan_register::neighbors::Neighbors;
 use crate::InspectError;
 use crate::differencing::difference_map;
 use crate::inspect::{InspectSettings, Inspection, Timings};
+use crate::photometric::corrected_render;
 use crate::verdict::Region;
 use crate::views::ViewRender;
 
@@ -70,6 +71,9 @@ pub struct VerdictFile<'a> {
     alignment: Vec<AlignmentEntry<'a>>,
     pixel_differencing: serde_json::Value,
     point_differencing: serde_json::Value,
+    /// How each model's colours were matched to the first's before the
+    /// visual comparison (gains per channel, reference over model).
+    colour_matching: serde_json::Value,
     combination: &'static str,
     units_per_metre: f64,
     threshold_mm: f64,
@@ -84,8 +88,13 @@ most views agree. A spot counts against a model when it differs there from every
 and the others agree there; such spots are clustered into regions. With --close-up, where a \
 little geometric evidence (too little for a region) points at one model, that place is rendered \
 again from up to 16 of the views that see it, zoomed to 0.4 mm pixels, and judged by the same \
-rules (its regions have close_up true). The model with the largest significant area is defective (none when no region is significant). The paper's rule \
-(the pair with the smallest mean pixel distance is the good pair) is reported and breaks exact ties.";
+rules (its regions have close_up true). A region is significant when it is over the minimum area \
+of its kind and at least twice its noise floor: the largest region of the same kind on the other \
+models (twins of good copies differ a little everywhere). The model with the largest significant \
+area is defective (none when no region is significant). Before colours are compared, each \
+model's surface colours are matched to the first model's by a gain that varies slowly over the \
+surface (colour_matching: lighting is baked into each scan). The paper's rule (the pair with the \
+smallest mean pixel distance is the good pair, on raw renders) is reported and breaks exact ties.";
 
 fn name(paths: &[PathBuf], i: usize) -> String {
     paths
@@ -157,6 +166,15 @@ pub fn verdict_file<'a>(
                 "significant_regions": c.regions.iter().filter(|r| r.significant).count(),
             })).collect::<Vec<_>>(),
         }),
+        colour_matching: serde_json::json!({
+            "radius_mm": settings.photometric_radius_mm,
+            "models": inspection.colour_corrections.iter().map(|c| serde_json::json!({
+                "model": name(paths, c.model),
+                "samples": c.samples,
+                "median_gain": c.median_gain,
+                "luminance_gain_p05_p95": c.gain_range,
+            })).collect::<Vec<_>>(),
+        }),
         combination: COMBINATION,
         units_per_metre: settings.units_per_metre,
         threshold_mm: settings.threshold_mm,
@@ -201,6 +219,50 @@ pub fn difference_image(a: &ViewRender, b: &ViewRender) -> RgbImage {
         height: h as u32,
         data,
     }
+}
+
+/// Per view, the area (mm²) of `model`'s significant regions whose centre
+/// it sees: in the image and not hidden behind another part of the model.
+fn region_views(
+    inspection: &Inspection,
+    model: usize,
+    spacing: f64,
+    units_per_metre: f64,
+) -> Vec<f64> {
+    let regions: Vec<&Region> = inspection
+        .verdict
+        .regions
+        .iter()
+        .filter(|r| r.model == model && r.significant)
+        .collect();
+    inspection
+        .views
+        .iter()
+        .zip(&inspection.renders[model])
+        .map(|(view, render)| {
+            let to_camera = view.camera_to_world.inverse();
+            let k = &view.intrinsics;
+            regions
+                .iter()
+                .filter(|r| {
+                    let q = to_camera * nalgebra::Point3::from(r.centroid);
+                    if q.z <= 0.0 {
+                        return false;
+                    }
+                    let (u, v) = (k.fx * q.x / q.z + k.cx, k.fy * q.y / q.z + k.cy);
+                    if u < 0.0 || v < 0.0 || u >= render.width as f64 || v >= render.height as f64 {
+                        return false;
+                    }
+                    let i = v as usize * render.width as usize + u as usize;
+                    let reach = 0.5 * r.extent_mm * units_per_metre / 1000.0 + 2.0 * spacing;
+                    render
+                        .surface_depth(i, 0.5)
+                        .is_some_and(|z| (z as f64 - q.z).abs() <= reach)
+                })
+                .map(|r| r.area_mm2)
+                .sum()
+        })
+        .collect()
 }
 
 /// The defective model's surface (or the reference's), red where it is
@@ -304,18 +366,37 @@ pub fn write_report(
     write_json_atomic(&verdict_path, &verdict)?;
 
     // Difference renders: for each pair with the defective model (every
-    // pair when none), the four views where the pair differs most.
+    // pair when none), the four views that see most of its significant
+    // regions, else where the pair differs most; colours matched as the
+    // visual comparison matched them.
     let focus = inspection.verdict.defective;
+    let spacing = settings.spacing_mm * settings.units_per_metre / 1000.0;
     let mut images: Vec<(String, String)> = Vec::new();
     for p in &inspection.pixels {
         if focus.is_some_and(|d| p.a != d && p.b != d) {
             continue;
         }
+        let seen: Vec<f64> = match focus {
+            Some(d) => region_views(inspection, d, spacing, settings.units_per_metre),
+            None => vec![0.0; p.per_view.len()],
+        };
         let mut order: Vec<usize> = (0..p.per_view.len()).collect();
-        order.sort_by(|&x, &y| p.per_view[y].total_cmp(&p.per_view[x]));
+        order.sort_by(|&x, &y| {
+            seen[y]
+                .total_cmp(&seen[x])
+                .then(p.per_view[y].total_cmp(&p.per_view[x]))
+        });
         for &v in order.iter().take(4) {
             let file = format!("diff_{}_{}_view{:03}.png", p.a, p.b, v);
-            let image = difference_image(&inspection.renders[p.a][v], &inspection.renders[p.b][v]);
+            let matched = |m: usize| {
+                corrected_render(
+                    &inspection.renders[m][v],
+                    &inspection.views[v],
+                    &inspection.surfaces[m],
+                    &inspection.colour_corrections[m],
+                )
+            };
+            let image = difference_image(&matched(p.a), &matched(p.b));
             write_rgb(&out.join(&file), &image)?;
             images.push((
                 file,
@@ -328,7 +409,6 @@ pub fn write_report(
             ));
         }
     }
-    let spacing = settings.spacing_mm * settings.units_per_metre / 1000.0;
     let cloud = defect_cloud(inspection, spacing, settings.units_per_metre);
     write_ply(&out.join("defects.ply"), &cloud)?;
     write_rgb(&out.join("defects.png"), &cloud_picture(&cloud, 360))?;
@@ -364,11 +444,11 @@ pub fn write_report(
         }
     }
     html.push_str("</p><h2>Regions</h2><table><tr><th>model</th><th>kind</th><th>centroid (model units)</th>\
-                   <th>extent mm</th><th>area mm²</th><th>mean difference</th><th>significant</th></tr>");
+                   <th>extent mm</th><th>area mm²</th><th>noise floor mm²</th><th>mean difference</th><th>significant</th></tr>");
     for r in &v.regions {
         let _ = write!(
             html,
-            "<tr><td>{}</td><td>{:?}</td><td>{:.4}, {:.4}, {:.4}</td><td>{:.1}</td><td>{:.1}</td><td>{:.3}</td><td>{}</td></tr>",
+            "<tr><td>{}</td><td>{:?}</td><td>{:.4}, {:.4}, {:.4}</td><td>{:.1}</td><td>{:.1}</td><td>{:.1}</td><td>{:.3}</td><td>{}</td></tr>",
             escape(&name(paths, r.model)),
             r.kind,
             r.centroid[0],
@@ -376,6 +456,7 @@ pub fn write_report(
             r.centroid[2],
             r.extent_mm,
             r.area_mm2,
+            r.noise_floor_mm2,
             r.mean_difference,
             if r.significant { "yes" } else { "no" }
         );

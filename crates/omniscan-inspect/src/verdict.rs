@@ -6,7 +6,9 @@
 //! copies differ there. Each kind of evidence (geometric from point
 //! differencing, visual from pixel differencing) is attributed that way,
 //! attributed points are clustered (DBSCAN) into regions, and regions
-//! smaller than a minimum area are dropped as noise. The defective model is
+//! smaller than a minimum area, or not twice the largest region of their
+//! kind on the other copies (the noise floor: what good copies differ by,
+//! measured on the copies at hand), are dropped as noise. The defective model is
 //! the one with the largest significant area; none is named when no model
 //! has a significant region. Visual regions inside a geometric region of the
 //! same model are part of it (a dent also shades differently). The paper's
@@ -53,7 +55,11 @@ pub struct Region {
     /// Mean distance to the other copies' surfaces (mm) for geometric
     /// regions, mean RGB distance for visual ones.
     pub mean_difference: f64,
-    /// Whether the region is over the minimum area for its kind.
+    /// The other copies' largest region of this kind, mm²: what twins of
+    /// good copies differ by here (see [`noise_floors`]).
+    pub noise_floor_mm2: f64,
+    /// Whether the region is over the minimum area for its kind and stands
+    /// [`NOISE_RATIO`] times above the noise floor.
     pub significant: bool,
     /// Found by a close look ([`crate::closeup`]) rather than the first pass.
     pub close_up: bool,
@@ -198,11 +204,66 @@ fn cluster(
                     Kind::Geometric => mean * mm,
                     Kind::Visual => mean,
                 },
+                noise_floor_mm2: 0.0,
                 significant: area >= minimum,
                 close_up: false,
             })
         })
         .collect()
+}
+
+/// How many times a region must exceed the other copies' largest region of
+/// its kind to count.
+pub const NOISE_RATIO: f64 = 2.0;
+
+fn kind_index(kind: Kind) -> usize {
+    match kind {
+        Kind::Geometric => 0,
+        Kind::Visual => 1,
+    }
+}
+
+/// Per model, per kind (geometric, visual), the area a region of that model
+/// must stand out against: the largest region of the kind on the other
+/// copies (the upper median of those when there are more than two others,
+/// so a second defective copy does not raise the floor). `regions` must hold
+/// every model's regions, references included.
+///
+/// Copies made from one model differ by resampling and noise, and their
+/// regions stay under the minimum areas; twins scanned and trained one by
+/// one differ everywhere a little (`omniscan bench scans`: regions of
+/// 7-54 mm² on good twins, from their own floaters, unseen patches and
+/// baked-in highlights). A defect must stand out against that, whatever its
+/// absolute size: a copy is only named when it differs from the others
+/// clearly more than they differ among themselves.
+pub fn noise_floors(models: usize, regions: &[Region]) -> Vec<[f64; 2]> {
+    let mut largest = vec![[0.0f64; 2]; models];
+    for r in regions {
+        let slot = &mut largest[r.model][kind_index(r.kind)];
+        *slot = slot.max(r.area_mm2);
+    }
+    (0..models)
+        .map(|m| {
+            [0, 1].map(|k| {
+                let mut others: Vec<f64> = (0..models)
+                    .filter(|&o| o != m)
+                    .map(|o| largest[o][k])
+                    .collect();
+                others.sort_by(f64::total_cmp);
+                others.get(others.len() / 2).copied().unwrap_or(0.0)
+            })
+        })
+        .collect()
+}
+
+/// Marks regions that do not stand [`NOISE_RATIO`] times above their
+/// model's noise floor as not significant.
+pub fn apply_noise_floors(regions: &mut [Region], floors: &[[f64; 2]]) {
+    for r in regions {
+        let floor = floors.get(r.model).map_or(0.0, |f| f[kind_index(r.kind)]);
+        r.noise_floor_mm2 = floor;
+        r.significant &= r.area_mm2 >= NOISE_RATIO * floor;
+    }
 }
 
 /// Decides which of `models` models is defective. `candidates` are the
@@ -214,10 +275,15 @@ pub fn decide(
     pixels: &[PixelComparison],
     settings: &VerdictSettings,
 ) -> Verdict {
+    let every: Vec<usize> = (0..models).collect();
+    let mut regions = find_regions(&every, pairs, settings);
+    let floors = noise_floors(models, &regions);
+    regions.retain(|r| candidates.contains(&r.model));
+    apply_noise_floors(&mut regions, &floors);
     name_defective(
         models,
         candidates,
-        find_regions(candidates, pairs, settings),
+        regions,
         pixels,
         settings.units_per_metre,
     )
@@ -320,6 +386,7 @@ pub fn name_defective(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::differencing::merge;
 
     fn patch(centre: [f64; 3], side: usize, spacing: f64) -> Evidence {
         let mut e = Evidence::default();
@@ -377,6 +444,50 @@ mod tests {
         assert_eq!(r.model, 2);
         assert!(r.significant);
         assert!((r.extent_mm - (50f64).sqrt()).abs() < 1e-6);
+    }
+
+    #[test]
+    fn a_copy_is_named_only_when_it_stands_out_against_the_others() {
+        // Model 2 has a 6x6 mm difference, model 0 one of 5x5 mm elsewhere:
+        // both over the minimum area, but neither twice the other's.
+        let on_two = patch([0.0, 0.0, 0.0], 6, 0.001);
+        let on_zero = patch([0.05, 0.0, 0.0], 5, 0.001);
+        let pairs = |zero: &Evidence| {
+            vec![
+                PairEvidence {
+                    a: 0,
+                    b: 1,
+                    geometric: zero.clone(),
+                    ..Default::default()
+                },
+                PairEvidence {
+                    a: 0,
+                    b: 2,
+                    geometric: merge(zero.clone(), on_two.clone()),
+                    ..Default::default()
+                },
+                PairEvidence {
+                    a: 1,
+                    b: 2,
+                    geometric: on_two.clone(),
+                    ..Default::default()
+                },
+            ]
+        };
+        let v = decide(3, &[0, 1, 2], &pairs(&on_zero), &[], &settings());
+        assert_eq!(v.defective, None, "{:?}", v.regions);
+        let floors: Vec<f64> = v.regions.iter().map(|r| r.noise_floor_mm2).collect();
+        assert!(
+            floors.contains(&25.0) && floors.contains(&36.0),
+            "{floors:?}"
+        );
+        // A 3x3 mm difference on model 0 is noise the 6x6 stands out against.
+        let small = patch([0.05, 0.0, 0.0], 3, 0.001);
+        let v = decide(3, &[0, 1, 2], &pairs(&small), &[], &settings());
+        assert_eq!(v.defective, Some(2));
+        // With 0 and 1 as references, model 0's difference still sets the floor.
+        let v = decide(3, &[2], &pairs(&on_zero), &[], &settings());
+        assert_eq!(v.defective, None);
     }
 
     #[test]

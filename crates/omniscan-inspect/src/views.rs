@@ -200,9 +200,39 @@ fn smooth_depth(render: &ViewRender, view: &View, i: usize) -> bool {
         .all(|j| render.alpha[j] >= 0.5 && (render.depth[j] - z).abs() <= tolerance)
 }
 
+/// The surface normal at a depth-smooth pixel, from its neighbours'
+/// back-projections (central differences where both sides exist), turned
+/// towards the camera; zero where it cannot be told.
+fn pixel_normal(r: &ViewRender, view: &View, x: u32, y: u32, at: &Point3<f64>) -> Vector3<f64> {
+    let (w, h) = (r.width, r.height);
+    let point = |x: u32, y: u32| {
+        let z = r.depth[(y * w + x) as usize] as f64;
+        back_project(view, x, y, z)
+    };
+    let along = |lo: Option<(u32, u32)>, hi: Option<(u32, u32)>| match (lo, hi) {
+        (Some(a), Some(b)) => point(b.0, b.1) - point(a.0, a.1),
+        (Some(a), None) => at - point(a.0, a.1),
+        (None, Some(b)) => point(b.0, b.1) - at,
+        (None, None) => Vector3::zeros(),
+    };
+    let du = along((x > 0).then(|| (x - 1, y)), (x + 1 < w).then(|| (x + 1, y)));
+    let dv = along((y > 0).then(|| (x, y - 1)), (y + 1 < h).then(|| (x, y + 1)));
+    let mut n = du.cross(&dv);
+    let length = n.norm();
+    if !(length > 0.0 && length.is_finite()) {
+        return Vector3::zeros();
+    }
+    n /= length;
+    let to_camera = view.camera_to_world.translation.vector - at.coords;
+    if n.dot(&to_camera) < 0.0 {
+        n = -n;
+    }
+    n
+}
+
 /// The visible surface of a model: opaque, depth-smooth pixels of every
-/// render back-projected, with their rendered colour, thinned to one point
-/// per `spacing` voxel.
+/// render back-projected, with their rendered colour and a normal facing
+/// the cameras that saw them, thinned to one point per `spacing` voxel.
 pub fn surface_points(renders: &[ViewRender], views: &[View], spacing: f64) -> PointCloud {
     let per_view: Vec<PointCloud> = renders
         .par_iter()
@@ -214,7 +244,9 @@ pub fn surface_points(renders: &[ViewRender], views: &[View], spacing: f64) -> P
                     continue;
                 };
                 let (x, y) = ((i % r.width as usize) as u32, (i / r.width as usize) as u32);
-                cloud.points.push(back_project(view, x, y, z as f64));
+                let point = back_project(view, x, y, z as f64);
+                cloud.normals.push(pixel_normal(r, view, x, y, &point));
+                cloud.points.push(point);
                 cloud.colors.push(r.rgb[i]);
             }
             cloud
@@ -248,6 +280,37 @@ mod tests {
         }
         // Evenly spread: the mean direction nearly cancels.
         assert!(mean.norm() / 50.0 < 0.05, "{}", mean.norm() / 50.0);
+    }
+
+    #[test]
+    fn surface_normals_face_out_of_a_box() {
+        let size = [0.06, 0.04, 0.025];
+        let part = crate::generate::test_part(size, 0.0012);
+        let views = sphere_views(&Point3::origin(), 0.12, 24, 96, 72);
+        let surface = surface_points(&render_views(&part, &views), &views, 0.002);
+        assert!(surface.len() > 500, "{}", surface.len());
+        assert!(surface.has_normals());
+        // Each point's face: the axis where it is closest to the box's
+        // side; points within 3 mm of an edge see two faces and are left out.
+        let (mut inside, mut facing_out) = (0, 0);
+        for (p, n) in surface.points.iter().zip(&surface.normals) {
+            let mut gaps: Vec<(f64, usize)> =
+                (0..3).map(|k| (0.5 * size[k] - p[k].abs(), k)).collect();
+            gaps.sort_by(|a, b| a.0.total_cmp(&b.0));
+            if gaps[1].0 < 0.003 {
+                continue;
+            }
+            let axis = gaps[0].1;
+            let mut outward = Vector3::zeros();
+            outward[axis] = p[axis].signum();
+            inside += 1;
+            facing_out += usize::from(n.dot(&outward) > 0.95);
+        }
+        assert!(inside > 300, "{inside}");
+        assert!(
+            facing_out as f64 > 0.95 * inside as f64,
+            "{facing_out} of {inside} normals face out of their face"
+        );
     }
 
     #[test]

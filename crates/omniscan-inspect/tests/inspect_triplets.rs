@@ -3,6 +3,8 @@
 
 use nalgebra::Point3;
 
+use omniscan_core::Pose;
+
 use omniscan_inspect::closeup::CloseUpSettings;
 use omniscan_inspect::generate::{CopySettings, DefectKind, good_copy, plant_defect, test_part};
 use omniscan_inspect::report::write_report;
@@ -25,8 +27,19 @@ fn triplet(
     slot: usize,
     seed: u64,
 ) -> (Vec<Splats>, Option<Point3<f64>>) {
+    let (copies, centre, _) = triplet_with_poses(defect, slot, seed);
+    (copies, centre)
+}
+
+/// [`triplet`], with the poses that map the part into each copy.
+fn triplet_with_poses(
+    defect: Option<(DefectKind, f64)>,
+    slot: usize,
+    seed: u64,
+) -> (Vec<Splats>, Option<Point3<f64>>, Vec<Pose>) {
     let part = test_part([0.06, 0.04, 0.025], 0.0012);
     let mut copies = Vec::new();
+    let mut poses = Vec::new();
     let mut centre = None;
     let mut first_pose = None;
     for k in 0..3 {
@@ -53,9 +66,10 @@ fn triplet(
             centre = Some(Point3::from(d.centre));
         }
         copies.push(copy);
+        poses.push(pose);
     }
     let centre = centre.map(|c| first_pose.unwrap() * c);
-    (copies, centre)
+    (copies, centre, poses)
 }
 
 fn located(
@@ -122,6 +136,40 @@ fn tape_is_a_visual_defect() {
     assert_eq!(result.verdict.defective, Some(0), "{:#?}", result.verdict);
     assert_eq!(result.verdict.defect_type, "visual");
     assert!(located(&result, 0, &centre.unwrap(), 8.0));
+}
+
+#[test]
+fn lighting_baked_into_one_copy_is_not_a_defect() {
+    // Copy 1 was "scanned" under other light: its top face (z = +12.5 mm on
+    // the part) came out 40% darker. Copy 0 has a tape strip.
+    let (mut copies, centre, poses) = triplet_with_poses(Some((DefectKind::Tape, 8.0)), 0, 2);
+    let to_part = poses[1].inverse();
+    let lit = &mut copies[1];
+    const C0: f32 = 0.282_094_8;
+    let mut darkened = 0;
+    for (mean, dc) in lit.means.iter().zip(lit.sh.iter_mut()) {
+        let on_part = to_part * Point3::from(mean.map(|v| v as f64));
+        if on_part.z > 0.0115 {
+            *dc = dc.map(|c| (0.6 * (0.5 + C0 * c) - 0.5) / C0);
+            darkened += 1;
+        }
+    }
+    assert!(darkened > 1000, "{darkened}");
+    let matched = inspect(&copies, &settings()).unwrap();
+    assert_eq!(matched.verdict.defective, Some(0), "{:#?}", matched.verdict);
+    assert!(located(&matched, 0, &centre.unwrap(), 8.0));
+    let gain = &matched.colour_corrections[1];
+    assert!(gain.gain_range[1] > 1.4, "{gain:?}");
+    // Compared raw, the darker face outweighs the tape.
+    let raw = inspect(
+        &copies,
+        &InspectSettings {
+            photometric_radius_mm: None,
+            ..settings()
+        },
+    )
+    .unwrap();
+    assert_eq!(raw.verdict.defective, Some(1), "{:#?}", raw.verdict);
 }
 
 #[test]

@@ -44,6 +44,10 @@ pub struct InspectArgs {
     /// Views rendered of every model.
     #[arg(long, default_value_t = 100)]
     pub views: usize,
+    /// Radius over which each model's surface colours are matched to the first model's before
+    /// they are compared (lighting baked in per scan), millimetres; 0 compares raw colours.
+    #[arg(long, default_value_t = 15.0)]
+    pub photometric_radius_mm: f64,
     /// Render width, pixels.
     #[arg(long, default_value_t = 160)]
     pub width: u32,
@@ -89,6 +93,8 @@ fn settings_from(args: &InspectArgs) -> Result<InspectSettings> {
         threshold_mm: args.threshold_mm,
         colour_threshold: args.colour_threshold,
         views: args.views,
+        photometric_radius_mm: (args.photometric_radius_mm > 0.0)
+            .then_some(args.photometric_radius_mm),
         width: args.width,
         height: args.height,
         backend: args.backend,
@@ -253,6 +259,10 @@ pub struct BenchArgs {
     pub good_triplets: usize,
     #[arg(long, default_value_t = 100)]
     pub views: usize,
+    /// Radius over which each model's surface colours are matched to the first model's before
+    /// they are compared (lighting baked in per scan), millimetres; 0 compares raw colours.
+    #[arg(long, default_value_t = 15.0)]
+    pub photometric_radius_mm: f64,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Keep each triplet's report here.
@@ -445,6 +455,8 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         let settings = InspectSettings {
             units_per_metre: *units,
             views: args.views,
+            photometric_radius_mm: (args.photometric_radius_mm > 0.0)
+                .then_some(args.photometric_radius_mm),
             close_up: args.close_up.then(CloseUpSettings::default),
             ..InspectSettings::default()
         };
