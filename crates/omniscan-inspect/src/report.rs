@@ -221,6 +221,21 @@ pub fn difference_image(a: &ViewRender, b: &ViewRender) -> RgbImage {
     }
 }
 
+fn significant_regions(inspection: &Inspection, model: usize) -> Vec<&Region> {
+    inspection
+        .verdict
+        .regions
+        .iter()
+        .filter(|r| r.model == model && r.significant)
+        .collect()
+}
+
+/// How far from its centroid a region reaches (model units): half its
+/// extent and two sample spacings.
+fn region_reach(region: &Region, spacing: f64, units_per_metre: f64) -> f64 {
+    0.5 * region.extent_mm * units_per_metre / 1000.0 + 2.0 * spacing
+}
+
 /// Per view, the area (mm²) of `model`'s significant regions whose centre
 /// it sees: in the image and not hidden behind another part of the model.
 fn region_views(
@@ -229,12 +244,7 @@ fn region_views(
     spacing: f64,
     units_per_metre: f64,
 ) -> Vec<f64> {
-    let regions: Vec<&Region> = inspection
-        .verdict
-        .regions
-        .iter()
-        .filter(|r| r.model == model && r.significant)
-        .collect();
+    let regions = significant_regions(inspection, model);
     inspection
         .views
         .iter()
@@ -254,7 +264,7 @@ fn region_views(
                         return false;
                     }
                     let i = v as usize * render.width as usize + u as usize;
-                    let reach = 0.5 * r.extent_mm * units_per_metre / 1000.0 + 2.0 * spacing;
+                    let reach = region_reach(r, spacing, units_per_metre);
                     render
                         .surface_depth(i, 0.5)
                         .is_some_and(|z| (z as f64 - q.z).abs() <= reach)
@@ -276,12 +286,7 @@ pub fn defect_cloud(inspection: &Inspection, spacing: f64, units_per_metre: f64)
         .filter(|p| p.a == model || p.b == model)
         .flat_map(|p| p.geometric.points.iter().chain(&p.visual.points).copied())
         .collect();
-    let regions: Vec<&Region> = inspection
-        .verdict
-        .regions
-        .iter()
-        .filter(|r| r.model == model && r.significant)
-        .collect();
+    let regions = significant_regions(inspection, model);
     let tree = (!evidence.is_empty()).then(|| Neighbors::new(&evidence));
     let mut cloud = surface.clone();
     for (i, p) in surface.points.iter().enumerate() {
@@ -290,7 +295,7 @@ pub fn defect_cloud(inspection: &Inspection, spacing: f64, units_per_metre: f64)
             .is_some_and(|t| t.nearest_within(p, 1.5 * spacing).is_some());
         let in_region = regions.iter().any(|r| {
             let c = nalgebra::Point3::from(r.centroid);
-            (p - c).norm() <= 0.5 * r.extent_mm * units_per_metre / 1000.0 + 2.0 * spacing
+            (p - c).norm() <= region_reach(r, spacing, units_per_metre)
         });
         cloud.colors[i] = if near_evidence && in_region {
             [0.9, 0.1, 0.1]
