@@ -122,6 +122,31 @@ fn plan(args: &BenchArgs) -> Result<Vec<Trial>> {
 }
 
 /// Scans and trains one copy, or reuses what an earlier run left.
+/// What one copy's scan and twin were made with, kept beside them
+/// (`scan.json`): a second run reuses them only for the same plan, so a
+/// changed `--trials` (which turns good trials into defective ones) or
+/// `--steps` cannot mix old twins into new figures.
+fn check_scan_record(dir: &Path, record: &serde_json::Value) -> Result<()> {
+    let path = dir.join("scan.json");
+    if path.exists() {
+        let text = std::fs::read_to_string(&path)
+            .with_context(|| format!("reading {}", path.display()))?;
+        let stored: serde_json::Value = serde_json::from_str(&text)
+            .with_context(|| format!("{}: not valid JSON", path.display()))?;
+        if &stored != record {
+            bail!(
+                "{} holds a scan made for another plan ({stored}; this run asks for {record}): \
+                 use another --out, or the same options as the run that made it",
+                dir.display()
+            );
+        }
+        return Ok(());
+    }
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    omniscan_core::io::write_json_atomic(&path, record)
+        .with_context(|| format!("writing {}", path.display()))
+}
+
 fn twin(
     dir: &Path,
     object: &str,
@@ -131,6 +156,20 @@ fn twin(
 ) -> Result<(PathBuf, Capture)> {
     let capture_dir = dir.join("capture");
     let model = dir.join("twin.ply");
+    check_scan_record(
+        dir,
+        &json!({
+            "object": object,
+            "seed": seed,
+            "defect": defect,
+            "width": args.width,
+            "height": args.height,
+            "supersample": args.supersample,
+            "steps": args.steps,
+            "downscale": args.downscale,
+            "plan": format!("{:?}", args.plan.config()),
+        }),
+    )?;
     if !capture_dir.join("capture.json").exists() {
         // A large defect may find no place on a small part away from the
         // fingers with one grasp: other seeds give other grasps and places.

@@ -590,8 +590,8 @@ fn mask_writes_masks_records_them_and_reports_iou_per_arm() {
 fn scan_bench_inspects_independently_trained_twins_and_resumes() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("scans");
-    let run = || -> serde_json::Value {
-        let o = omniscan(&[
+    let bench = |steps: &str| {
+        omniscan(&[
             "bench",
             "scans",
             "--out",
@@ -613,13 +613,16 @@ fn scan_bench_inspects_independently_trained_twins_and_resumes() {
             "--latitudes",
             "3",
             "--steps",
-            "40",
+            steps,
             "--downscale",
             "1",
             "--views",
             "12",
             "--json",
-        ]);
+        ])
+    };
+    let run = || -> serde_json::Value {
+        let o = bench("40");
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         serde_json::from_slice(&o.stdout).unwrap()
     };
@@ -649,4 +652,13 @@ fn scan_bench_inspects_independently_trained_twins_and_resumes() {
         written
     );
     assert_eq!(second["rows"][0]["predicted"], row["predicted"]);
+    // Twins trained for another plan are not mixed into this one's figures.
+    let other = bench("60");
+    assert!(!other.status.success());
+    let message = String::from_utf8_lossy(&other.stderr);
+    assert!(message.contains("another plan"), "{message}");
+    assert_eq!(
+        std::fs::metadata(&twin).unwrap().modified().unwrap(),
+        written
+    );
 }
