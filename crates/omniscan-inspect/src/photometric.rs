@@ -150,15 +150,18 @@ pub fn match_colours(
     }
     let sample_points: Vec<Point3<f64>> = samples.iter().map(|s| s.point).collect();
     let sample_tree = Neighbors::new(&sample_points);
-    let gains: Vec<[f64; 3]> = (0..model.len())
-        .into_par_iter()
-        .map(|i| {
-            let n = model.normals[i];
+    // The field is computed at the samples (a few per sixth of the radius)
+    // and each surface point takes that of a near sample on its face: the
+    // field varies slowly, and a median per surface point took seconds on
+    // a large flat part.
+    let field: Vec<[f64; 3]> = samples
+        .par_iter()
+        .map(|sample| {
             let near: Vec<usize> = sample_tree
-                .within(&model.points[i], field_radius)
+                .within(&sample.point, field_radius)
                 .into_iter()
                 .map(|(j, _)| j)
-                .filter(|&j| samples[j].normal.dot(&n) >= SAME_FACE)
+                .filter(|&j| samples[j].normal.dot(&sample.normal) >= SAME_FACE)
                 .collect();
             if near.len() < MIN_SAMPLES {
                 return global.map(f64::exp);
@@ -171,6 +174,19 @@ pub fn match_colours(
                 gain[k] = median(&mut v).clamp(-limit, limit).exp();
             }
             gain
+        })
+        .collect();
+    let gains: Vec<[f64; 3]> = (0..model.len())
+        .into_par_iter()
+        .map(|i| {
+            let n = model.normals[i];
+            sample_tree
+                .knn(&model.points[i], 6)
+                .into_iter()
+                .find(|&(j, d2)| {
+                    d2.sqrt() <= 0.5 * field_radius && samples[j].normal.dot(&n) >= SAME_FACE
+                })
+                .map_or_else(|| global.map(f64::exp), |(j, _)| field[j])
         })
         .collect();
     for (c, g) in model.colors.iter_mut().zip(&gains) {
