@@ -222,8 +222,9 @@ fn most_alike(
     for (i, score) in scores.into_iter().enumerate() {
         let score = score?;
         tracing::debug!(
-            "candidate {i}: fitness {:.4}, appearance {score:.4}",
-            candidates[i].fitness
+            "candidate {i}: fitness {:.4}, appearance {score:.4}, pose {:?}",
+            candidates[i].fitness,
+            omniscan_core::geometry::pose_to_rows(&candidates[i].transformation)
         );
         if score < best.0 {
             best = (score, Some(i));
