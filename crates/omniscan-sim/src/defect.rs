@@ -110,7 +110,14 @@ pub fn plant_defect(
         point: center,
         normal,
         color: uv_color,
-    } = pick_place(mesh, seed, avoid, avoid_radius, size)?;
+    } = pick_place(
+        mesh,
+        seed,
+        avoid,
+        avoid_radius,
+        size,
+        !spec.kind.is_geometric(),
+    )?;
     let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0xdef);
     let helper = if normal.x.abs() < 0.9 {
         Vector3::x()
@@ -234,12 +241,17 @@ struct Place {
 }
 
 /// A seeded surface point away from `avoid`, flat over the defect's size.
+/// A mark on the surface (`surface_mark`) only needs its own side flat:
+/// vertices behind the surface and facing away belong to the far side of a
+/// sheet (a 2 mm bracket's opposite normals made every place fail); a dent
+/// or a cut would go through to that side, so for them they count.
 fn pick_place(
     mesh: &Mesh,
     seed: u64,
     avoid: &[Point3<f64>],
     avoid_radius: f64,
     size: f64,
+    surface_mark: bool,
 ) -> Result<Place, SimError> {
     let areas: Vec<f64> = (0..mesh.triangles.len())
         .map(|t| {
@@ -273,7 +285,11 @@ fn pick_place(
             .positions
             .iter()
             .zip(&mesh.normals)
-            .filter(|(q, _)| (q.cast::<f64>() - p).norm() < 0.5 * size)
+            .filter(|(q, qn)| {
+                let d = q.cast::<f64>() - p;
+                let far_side = d.dot(&n) < 0.0 && qn.cast::<f64>().dot(&n) < -0.5;
+                d.norm() < 0.5 * size && !(surface_mark && far_side)
+            })
             .all(|(_, qn)| qn.cast::<f64>().dot(&n) > 0.5);
         if !flat {
             continue;
@@ -482,6 +498,29 @@ mod tests {
             "{first} vs {}",
             record.depth_mm
         );
+    }
+
+    #[test]
+    fn a_mark_finds_a_place_on_a_thin_sheet_and_a_dent_does_not() {
+        let mut b = MeshBuilder::new(Material::color([0.3; 3]));
+        b.cuboid(
+            Point3::new(-0.03, -0.03, -0.001),
+            Point3::new(0.03, 0.03, 0.001),
+            0,
+        );
+        let mut sheet = b.finish();
+        refine_near(&mut sheet, &Point3::origin(), 0.1, 0.0015);
+        sheet.compute_normals();
+        let spec = |kind| DefectSpec { kind, size_mm: 8.0 };
+        for seed in 0..3 {
+            let (record, _) =
+                plant_defect(&mut sheet.clone(), &spec(DefectKind::Tape), seed, &[], 0.0).unwrap();
+            assert!(Vector3::from(record.normal).z.abs() > 0.99, "{record:?}");
+            // 2.8 mm deep through a 2 mm sheet: no place is right for it.
+            assert!(
+                plant_defect(&mut sheet.clone(), &spec(DefectKind::Dent), seed, &[], 0.0).is_err()
+            );
+        }
     }
 
     #[test]
