@@ -171,16 +171,14 @@ fn appearance_distance(
     pose: &Pose,
     views: &[View],
     reference: &[crate::views::ViewRender],
+    reference_contrast: &[Vec<[f32; 3]>],
     appearance: Appearance,
 ) -> Result<f64, InspectError> {
     let moved = model.transformed(pose, 1.0)?;
     let renders = render_views(&moved, views);
     let (mut sum, mut count) = (0.0, 0usize);
-    for (a, b) in renders.iter().zip(reference) {
-        let (ca, cb) = (
-            local_contrast(a, CONTRAST_RADIUS),
-            local_contrast(b, CONTRAST_RADIUS),
-        );
+    for ((a, b), cb) in renders.iter().zip(reference).zip(reference_contrast) {
+        let ca = local_contrast(a, CONTRAST_RADIUS);
         let distance = |p: [f32; 3], q: [f32; 3]| {
             (0..3)
                 .map(|k| (p[k] - q[k]).powi(2) as f64)
@@ -214,9 +212,22 @@ fn most_alike(
     reference: &[crate::views::ViewRender],
     appearance: Appearance,
 ) -> Result<Option<usize>, InspectError> {
+    let reference_contrast: Vec<Vec<[f32; 3]>> = reference
+        .iter()
+        .map(|r| local_contrast(r, CONTRAST_RADIUS))
+        .collect();
     let scores: Vec<Result<f64, InspectError>> = candidates
         .par_iter()
-        .map(|r| appearance_distance(model, &r.transformation, views, reference, appearance))
+        .map(|r| {
+            appearance_distance(
+                model,
+                &r.transformation,
+                views,
+                reference,
+                &reference_contrast,
+                appearance,
+            )
+        })
         .collect();
     let mut best = (f64::INFINITY, None);
     for (i, score) in scores.into_iter().enumerate() {
@@ -398,12 +409,6 @@ pub fn align_model(
     })
 }
 
-/// Turns whose renders are compared, at most (the best by point colours):
-/// every coarse turn either way round, since the splat centres' colours
-/// carry each twin's own lighting and did not rank the right turn of a
-/// scanned flashlight among the first four.
-const RENDERED_TURNS: usize = 48;
-
 /// Two principal variances closer than this ratio count as equal.
 const ROUND_RATIO: f64 = 1.25;
 
@@ -485,34 +490,17 @@ impl Turns<'_> {
         if let [only] = contenders[..] {
             return Ok((only.transformation, 1));
         }
-        // Rendering is the expensive test: the splat centres' colours
-        // (noisier, but a nearest-point lookup each) pick the few it decides
-        // between.
-        let colour = |r: &omniscan_register::icp::Registration| {
-            omniscan_register::global::color_rmse(
-                self.source,
-                self.target,
-                self.max_distance,
-                &r.transformation,
-            )
-            .unwrap_or(0.0)
-        };
-        let mut by_colour: Vec<(f64, &omniscan_register::icp::Registration)> =
-            contenders.iter().map(|&r| (colour(r), r)).collect();
-        by_colour.sort_by(|a, b| a.0.total_cmp(&b.0));
-        let rendered: Vec<&omniscan_register::icp::Registration> = by_colour
-            .into_iter()
-            .take(RENDERED_TURNS)
-            .map(|(_, r)| r)
-            .collect();
+        // Every contender is rendered: the splat centres' colours, cheaper,
+        // carry each twin's own lighting and did not rank the right turn of
+        // a scanned flashlight among their first four.
         let best = most_alike(
             self.model,
-            &rendered,
+            &contenders,
             self.views,
             self.reference_renders,
             Appearance::Contrast,
         )?
-        .map_or(starts[0], |i| rendered[i].transformation);
+        .map_or(starts[0], |i| contenders[i].transformation);
         Ok((best, contenders.len()))
     }
 }

@@ -17,8 +17,8 @@ use crate::differencing::{
 };
 use crate::photometric::{ColourCorrection, match_colours};
 use crate::verdict::{
-    Kind, PairEvidence, Verdict, VerdictSettings, apply_noise_floors, find_regions, name_defective,
-    noise_floors,
+    Kind, PairEvidence, Verdict, VerdictSettings, apply_noise_floors, candidate_regions,
+    name_defective,
 };
 use crate::views::{View, ViewRender, render_views, render_views_on, sphere_views, surface_points};
 use omniscan_splat::backend::{Backend, Renderer};
@@ -337,13 +337,8 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
             .unwrap_or(std::f64::consts::PI * (0.5 * settings.threshold_mm).powi(2)),
         min_visual_area_mm2: settings.min_visual_area_mm2,
     };
-    // Every model's regions, references too: they measure how much good
-    // copies differ (the noise floors).
-    let every: Vec<usize> = (0..models.len()).collect();
-    let mut regions = find_regions(&every, &pairs, &verdict_settings);
-    let floors = noise_floors(models.len(), &regions);
-    regions.retain(|r| candidates.contains(&r.model));
-    apply_noise_floors(&mut regions, &floors);
+    let (mut regions, floors) =
+        candidate_regions(models.len(), &candidates, &pairs, &verdict_settings);
     let compare_done = Instant::now();
     let close_ups = match &settings.close_up {
         Some(close_up) => look_closer(
@@ -369,10 +364,11 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
                 && r.overlaps(region, settings.units_per_metre)
         });
         if region.kind == Kind::Geometric && !known {
-            regions.push(region.clone());
+            let mut region = region.clone();
+            apply_noise_floors(std::slice::from_mut(&mut region), &floors);
+            regions.push(region);
         }
     }
-    apply_noise_floors(&mut regions, &floors);
     let verdict = name_defective(
         models.len(),
         &candidates,

@@ -209,39 +209,52 @@ pub fn match_colours(
     }
 }
 
-/// `render` (of `view`, from the model whose surface is `surface`) with the
-/// colours matched as `correction` matched the surface's: each pixel takes
-/// the gain of the surface point nearest to where it lands, so difference
-/// images show what the visual comparison compared.
-pub fn corrected_render(
-    render: &ViewRender,
-    view: &View,
-    surface: &PointCloud,
-    correction: &ColourCorrection,
-) -> ViewRender {
-    let mut out = render.clone();
-    if correction.gains.len() != surface.len() || surface.is_empty() {
-        return out;
+/// Applies a model's colour correction to its renders: each pixel takes the
+/// gain of the surface point nearest to where it lands, so difference images
+/// show what the visual comparison compared. Built once per model (it holds
+/// a search tree over the model's surface).
+pub struct RenderCorrection<'a> {
+    /// `None` when there is nothing to correct (the reference itself).
+    tree: Option<Neighbors>,
+    correction: &'a ColourCorrection,
+}
+
+impl<'a> RenderCorrection<'a> {
+    /// For the model whose surface samples are `surface` and whose colours
+    /// were matched by `correction`.
+    pub fn new(surface: &PointCloud, correction: &'a ColourCorrection) -> Self {
+        let usable = correction.gains.len() == surface.len() && !surface.is_empty();
+        RenderCorrection {
+            tree: usable.then(|| Neighbors::new(&surface.points)),
+            correction,
+        }
     }
-    let tree = Neighbors::new(&surface.points);
-    let fallback = correction.median_gain.map(|g| g as f32);
-    let width = render.width as usize;
-    out.rgb.par_iter_mut().enumerate().for_each(|(i, c)| {
-        if render.alpha[i] <= 0.0 {
-            return;
-        }
-        let gain = render
-            .surface_depth(i, SURFACE_ALPHA)
-            .and_then(|z| {
-                let (x, y) = ((i % width) as u32, (i / width) as u32);
-                tree.nearest(&back_project(view, x, y, z as f64))
-            })
-            .map_or(fallback, |(j, _)| correction.gains[j]);
-        for k in 0..3 {
-            c[k] = (c[k] * gain[k]).clamp(0.0, 1.0);
-        }
-    });
-    out
+
+    /// `render` of `view` with the colours matched.
+    pub fn apply(&self, render: &ViewRender, view: &View) -> ViewRender {
+        let mut out = render.clone();
+        let Some(tree) = &self.tree else {
+            return out;
+        };
+        let fallback = self.correction.median_gain.map(|g| g as f32);
+        let width = render.width as usize;
+        out.rgb.par_iter_mut().enumerate().for_each(|(i, c)| {
+            if render.alpha[i] <= 0.0 {
+                return;
+            }
+            let gain = render
+                .surface_depth(i, SURFACE_ALPHA)
+                .and_then(|z| {
+                    let (x, y) = ((i % width) as u32, (i / width) as u32);
+                    tree.nearest(&back_project(view, x, y, z as f64))
+                })
+                .map_or(fallback, |(j, _)| self.correction.gains[j]);
+            for k in 0..3 {
+                c[k] = (c[k] * gain[k]).clamp(0.0, 1.0);
+            }
+        });
+        out
+    }
 }
 
 #[cfg(test)]
@@ -323,8 +336,9 @@ mod tests {
             ..ColourCorrection::identity(1)
         };
         let (mut halved, mut kept) = (0, 0);
+        let matcher = RenderCorrection::new(&surface, &correction);
         for (render, view) in renders.iter().zip(&views) {
-            let matched = corrected_render(render, view, &surface, &correction);
+            let matched = matcher.apply(render, view);
             for i in 0..render.rgb.len() {
                 let Some(z) = render.surface_depth(i, 0.9) else {
                     assert!(render.alpha[i] > 0.0 || matched.rgb[i] == render.rgb[i]);

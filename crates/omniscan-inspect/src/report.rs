@@ -19,7 +19,7 @@ use omniscan_register::neighbors::Neighbors;
 use crate::InspectError;
 use crate::differencing::difference_map;
 use crate::inspect::{InspectSettings, Inspection, Timings};
-use crate::photometric::corrected_render;
+use crate::photometric::RenderCorrection;
 use crate::verdict::Region;
 use crate::views::ViewRender;
 
@@ -377,6 +377,12 @@ pub fn write_report(
     let focus = inspection.verdict.defective;
     let spacing = settings.spacing_mm * settings.units_per_metre / 1000.0;
     let mut images: Vec<(String, String)> = Vec::new();
+    let corrections: Vec<RenderCorrection> = inspection
+        .surfaces
+        .iter()
+        .zip(&inspection.colour_corrections)
+        .map(|(surface, correction)| RenderCorrection::new(surface, correction))
+        .collect();
     for p in &inspection.pixels {
         if focus.is_some_and(|d| p.a != d && p.b != d) {
             continue;
@@ -393,14 +399,8 @@ pub fn write_report(
         });
         for &v in order.iter().take(4) {
             let file = format!("diff_{}_{}_view{:03}.png", p.a, p.b, v);
-            let matched = |m: usize| {
-                corrected_render(
-                    &inspection.renders[m][v],
-                    &inspection.views[v],
-                    &inspection.surfaces[m],
-                    &inspection.colour_corrections[m],
-                )
-            };
+            let matched =
+                |m: usize| corrections[m].apply(&inspection.renders[m][v], &inspection.views[v]);
             let image = difference_image(&matched(p.a), &matched(p.b));
             write_rgb(&out.join(&file), &image)?;
             images.push((

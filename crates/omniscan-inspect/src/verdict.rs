@@ -266,6 +266,23 @@ pub fn apply_noise_floors(regions: &mut [Region], floors: &[[f64; 2]]) {
     }
 }
 
+/// The candidates' regions with their noise floors applied, and every
+/// model's floors. Regions are found for every model, references too:
+/// those measure how much good copies differ.
+pub fn candidate_regions(
+    models: usize,
+    candidates: &[usize],
+    pairs: &[PairEvidence],
+    settings: &VerdictSettings,
+) -> (Vec<Region>, Vec<[f64; 2]>) {
+    let every: Vec<usize> = (0..models).collect();
+    let mut regions = find_regions(&every, pairs, settings);
+    let floors = noise_floors(models, &regions);
+    regions.retain(|r| candidates.contains(&r.model));
+    apply_noise_floors(&mut regions, &floors);
+    (regions, floors)
+}
+
 /// Decides which of `models` models is defective. `candidates` are the
 /// models that may be named (all, or those not given as references).
 pub fn decide(
@@ -275,11 +292,7 @@ pub fn decide(
     pixels: &[PixelComparison],
     settings: &VerdictSettings,
 ) -> Verdict {
-    let every: Vec<usize> = (0..models).collect();
-    let mut regions = find_regions(&every, pairs, settings);
-    let floors = noise_floors(models, &regions);
-    regions.retain(|r| candidates.contains(&r.model));
-    apply_noise_floors(&mut regions, &floors);
+    let (regions, _) = candidate_regions(models, candidates, pairs, settings);
     name_defective(
         models,
         candidates,

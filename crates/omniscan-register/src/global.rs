@@ -305,12 +305,7 @@ fn principal_half_turns(cloud: &PointCloud) -> Vec<Pose> {
 /// RMS difference of intensity over correspondences (source points moved by
 /// `pose` with a target point within `max_distance`), when both clouds have
 /// colours.
-pub fn color_rmse(
-    source: &PointCloud,
-    target: &Target,
-    max_distance: f64,
-    pose: &Pose,
-) -> Option<f64> {
+fn color_rmse(source: &PointCloud, target: &Target, max_distance: f64, pose: &Pose) -> Option<f64> {
     if !source.has_colors() || !target.cloud.has_colors() {
         return None;
     }

@@ -21,6 +21,23 @@ use omniscan_inspect::{InspectSettings, Inspection, inspect};
 use omniscan_splat::Splats;
 use omniscan_splat::ply::{read_splats, write_splats};
 
+/// How the inspection matches the models' colours, for `inspect` and the
+/// inspection benchmarks.
+#[derive(clap::Args, Clone, Copy)]
+pub struct ColourMatchArgs {
+    /// Radius over which each model's surface colours are matched to the first model's before
+    /// they are compared (lighting baked in per scan), millimetres; 0 compares raw colours.
+    #[arg(long, default_value_t = 15.0)]
+    pub photometric_radius_mm: f64,
+}
+
+impl ColourMatchArgs {
+    /// The radius to match colours over, millimetres; `None`: raw colours.
+    pub fn radius_mm(&self) -> Option<f64> {
+        (self.photometric_radius_mm > 0.0).then_some(self.photometric_radius_mm)
+    }
+}
+
 #[derive(clap::Args)]
 pub struct InspectArgs {
     /// Splat models (3DGS PLY) of three or more copies of one part; all are aligned to the first.
@@ -44,10 +61,8 @@ pub struct InspectArgs {
     /// Views rendered of every model.
     #[arg(long, default_value_t = 100)]
     pub views: usize,
-    /// Radius over which each model's surface colours are matched to the first model's before
-    /// they are compared (lighting baked in per scan), millimetres; 0 compares raw colours.
-    #[arg(long, default_value_t = 15.0)]
-    pub photometric_radius_mm: f64,
+    #[command(flatten)]
+    pub colour: ColourMatchArgs,
     /// Render width, pixels.
     #[arg(long, default_value_t = 160)]
     pub width: u32,
@@ -93,8 +108,7 @@ fn settings_from(args: &InspectArgs) -> Result<InspectSettings> {
         threshold_mm: args.threshold_mm,
         colour_threshold: args.colour_threshold,
         views: args.views,
-        photometric_radius_mm: (args.photometric_radius_mm > 0.0)
-            .then_some(args.photometric_radius_mm),
+        photometric_radius_mm: args.colour.radius_mm(),
         width: args.width,
         height: args.height,
         backend: args.backend,
@@ -259,10 +273,8 @@ pub struct BenchArgs {
     pub good_triplets: usize,
     #[arg(long, default_value_t = 100)]
     pub views: usize,
-    /// Radius over which each model's surface colours are matched to the first model's before
-    /// they are compared (lighting baked in per scan), millimetres; 0 compares raw colours.
-    #[arg(long, default_value_t = 15.0)]
-    pub photometric_radius_mm: f64,
+    #[command(flatten)]
+    pub colour: ColourMatchArgs,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Keep each triplet's report here.
@@ -455,8 +467,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         let settings = InspectSettings {
             units_per_metre: *units,
             views: args.views,
-            photometric_radius_mm: (args.photometric_radius_mm > 0.0)
-                .then_some(args.photometric_radius_mm),
+            photometric_radius_mm: args.colour.radius_mm(),
             close_up: args.close_up.then(CloseUpSettings::default),
             ..InspectSettings::default()
         };

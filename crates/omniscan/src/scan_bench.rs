@@ -69,10 +69,8 @@ pub struct BenchArgs {
     pub downscale: u32,
     #[arg(long, default_value_t = 100)]
     pub views: usize,
-    /// Radius over which each model's surface colours are matched to the first model's before
-    /// they are compared (lighting baked in per scan), millimetres; 0 compares raw colours.
-    #[arg(long, default_value_t = 15.0)]
-    pub photometric_radius_mm: f64,
+    #[command(flatten)]
+    pub colour: crate::inspect::ColourMatchArgs,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     #[arg(long)]
@@ -277,8 +275,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         let settings = InspectSettings {
             units_per_metre: 1.0,
             views: args.views,
-            photometric_radius_mm: (args.photometric_radius_mm > 0.0)
-                .then_some(args.photometric_radius_mm),
+            photometric_radius_mm: args.colour.radius_mm(),
             ..InspectSettings::default()
         };
         let started = Instant::now();
