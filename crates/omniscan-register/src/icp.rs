@@ -723,6 +723,13 @@ pub fn icp(
     let grid = target.grid(2.0 * max_distance);
     let grid = grid.as_deref();
     let mut corr = correspondences(&moved, target, grid, max_distance, &mut hints, &[]);
+    if criteria.max_iteration > 0 {
+        // Searches after the first walk the neighbour graph. Built here, it
+        // has both threads; built by the first search that needs it, inside
+        // the parallel correspondence pass, it had one, the other waiting
+        // for it (on a 32k-point scan: 41 ms, against 21-33 ms here).
+        target.graph(grid);
+    }
     let mut moved_by = vec![0.0; moved.len()];
     let (mut fitness, mut rmse) = score(source.len(), &corr);
     let mut iterations = 0;
