@@ -20,7 +20,9 @@ use crate::verdict::{
     Kind, PairEvidence, Verdict, VerdictSettings, apply_noise_floors, candidate_regions,
     name_defective,
 };
-use crate::views::{View, ViewRender, render_views, render_views_on, sphere_views, surface_points};
+use crate::views::{
+    CameraSet, View, ViewRender, render_views, render_views_on, sphere_views, surface_points,
+};
 use omniscan_splat::backend::{Backend, Renderer};
 
 /// Settings of an inspection. Lengths in millimetres are converted to the
@@ -34,6 +36,10 @@ pub struct InspectSettings {
     pub threshold_mm: f64,
     /// Views rendered of every model (paper: 100).
     pub views: usize,
+    /// Where the views are: `None` spreads them over a sphere around the
+    /// first model; a camera set (its scan's cameras, as the paper) gives
+    /// `views` of its cameras, each zoomed onto the part.
+    pub cameras: Option<CameraSet>,
     pub width: u32,
     pub height: u32,
     /// RGB L2 distance (0-1 channels) above which a pixel differs.
@@ -69,6 +75,7 @@ impl Default for InspectSettings {
             units_per_metre: 1.0,
             threshold_mm: 4.5,
             views: 100,
+            cameras: None,
             width: 160,
             height: 120,
             colour_threshold: 0.3,
@@ -116,19 +123,31 @@ pub struct Inspection {
 
 /// Views that fit the reference's robust box tightly in each image, so an
 /// elongated part is not drawn small in the middle of a square of background.
+/// Views on the sphere look at the part's centre and are only zoomed in;
+/// given cameras (a scan's, where the part sits anywhere in a wide view)
+/// are zoomed and re-centred onto it, as a crop of their image would be.
 fn framed_views(
     reference: &Splats,
     centre: &nalgebra::Point3<f64>,
     radius: f64,
     settings: &InspectSettings,
 ) -> Vec<View> {
-    let mut views = sphere_views(
-        centre,
-        1.15 * radius,
-        settings.views,
-        settings.width,
-        settings.height,
-    );
+    let (mut views, recentre) = match &settings.cameras {
+        Some(cameras) => (
+            cameras.views(settings.views, settings.width, settings.height),
+            true,
+        ),
+        None => (
+            sphere_views(
+                centre,
+                1.15 * radius,
+                settings.views,
+                settings.width,
+                settings.height,
+            ),
+            false,
+        ),
+    };
     let sigmoid = |x: f32| 1.0 / (1.0 + (-x).exp());
     let opaque: Vec<nalgebra::Point3<f64>> = reference
         .means
@@ -144,25 +163,43 @@ fn framed_views(
             .iter()
             .filter_map(|p| {
                 let q = world_to_camera * p;
-                (q.z > 0.0).then(|| ((q.x / q.z).abs(), (q.y / q.z).abs()))
+                (q.z > 0.0).then(|| (q.x / q.z, q.y / q.z))
             })
             .collect();
         if spans.len() < 10 {
             continue;
         }
-        // The 98th percentile: stray floaters must not shrink the part.
-        let percentile = |v: &mut Vec<f64>| {
-            v.sort_by(f64::total_cmp);
-            v[(v.len() * 98 / 100).min(v.len() - 1)]
-        };
+        // The 2nd and 98th percentiles: stray floaters must not shrink the part.
+        let percentile = |v: &[f64], p: usize| v[(v.len() * p / 100).min(v.len() - 1)];
         let mut xs: Vec<f64> = spans.iter().map(|s| s.0).collect();
         let mut ys: Vec<f64> = spans.drain(..).map(|s| s.1).collect();
-        let (sx, sy) = (percentile(&mut xs), percentile(&mut ys));
+        xs.sort_by(f64::total_cmp);
+        ys.sort_by(f64::total_cmp);
         let k = &mut view.intrinsics;
-        let focal = (0.85 * k.cx / sx.max(1e-9)).min(0.85 * k.cy / sy.max(1e-9));
-        if focal.is_finite() && focal > k.fx {
-            k.fx = focal;
-            k.fy = focal;
+        if recentre {
+            let middle = |v: &[f64]| 0.5 * (percentile(v, 2) + percentile(v, 98));
+            let half = |v: &[f64]| 0.5 * (percentile(v, 98) - percentile(v, 2));
+            let (half_width, half_height) = (0.5 * k.width as f64, 0.5 * k.height as f64);
+            let focal = (0.85 * half_width / half(&xs).max(1e-9))
+                .min(0.85 * half_height / half(&ys).max(1e-9));
+            if focal.is_finite() {
+                k.fx = focal;
+                k.fy = focal;
+                k.cx = half_width - focal * middle(&xs);
+                k.cy = half_height - focal * middle(&ys);
+            }
+        } else {
+            let reach = |v: &[f64]| {
+                let mut magnitudes: Vec<f64> = v.iter().map(|x| x.abs()).collect();
+                magnitudes.sort_by(f64::total_cmp);
+                percentile(&magnitudes, 98)
+            };
+            let (sx, sy) = (reach(&xs), reach(&ys));
+            let focal = (0.85 * k.cx / sx.max(1e-9)).min(0.85 * k.cy / sy.max(1e-9));
+            if focal.is_finite() && focal > k.fx {
+                k.fx = focal;
+                k.fy = focal;
+            }
         }
     }
     views

@@ -78,6 +78,9 @@ pub struct VerdictFile<'a> {
     units_per_metre: f64,
     threshold_mm: f64,
     views: usize,
+    /// Where the views are: spread over a sphere around the first model, or
+    /// the given cameras (each zoomed onto the part).
+    views_from: String,
     timings_s: &'a Timings,
 }
 
@@ -179,6 +182,10 @@ pub fn verdict_file<'a>(
         units_per_metre: settings.units_per_metre,
         threshold_mm: settings.threshold_mm,
         views: inspection.views.len(),
+        views_from: settings.cameras.as_ref().map_or_else(
+            || "sphere around the first model".to_string(),
+            |c| format!("cameras of {}", c.source),
+        ),
         timings_s: &inspection.timings,
     }
 }

@@ -40,6 +40,56 @@ impl View {
     }
 }
 
+/// Cameras to render instead of views spread over the sphere: the paper
+/// renders "poses that align with the training dataset" of the first model,
+/// its own scan's cameras. Camera-to-model poses (OpenCV axes, model units)
+/// sharing one pinhole.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CameraSet {
+    pub camera_to_model: Vec<Pose>,
+    pub intrinsics: Intrinsics,
+    /// Where the cameras come from, for the report (e.g. a capture's path).
+    pub source: String,
+}
+
+impl CameraSet {
+    /// `count` of the cameras taken evenly through the list (all of them
+    /// when there are fewer), each with its pinhole scaled to a
+    /// `width`x`height` image (square pixels, the capture's image centred
+    /// in it). The inspection then zooms each onto the part.
+    pub fn views(&self, count: usize, width: u32, height: u32) -> Vec<View> {
+        let n = self.camera_to_model.len();
+        let picked: Vec<usize> = if count >= n {
+            (0..n).collect()
+        } else {
+            (0..count).map(|i| (2 * i + 1) * n / (2 * count)).collect()
+        };
+        let k = &self.intrinsics;
+        let scale = (width as f64 / k.width as f64).min(height as f64 / k.height as f64);
+        let intrinsics = Intrinsics {
+            width,
+            height,
+            fx: k.fx * scale,
+            fy: k.fy * scale,
+            cx: 0.5 * width as f64 + (k.cx - 0.5 * k.width as f64) * scale,
+            cy: 0.5 * height as f64 + (k.cy - 0.5 * k.height as f64) * scale,
+        };
+        picked
+            .into_iter()
+            .map(|i| {
+                let pose = self.camera_to_model[i];
+                let distance = pose.translation.vector.norm().max(1e-9);
+                View {
+                    camera_to_world: pose,
+                    intrinsics,
+                    near: 0.01 * distance,
+                    far: 100.0 * distance,
+                }
+            })
+            .collect()
+    }
+}
+
 /// `count` views on a sphere around `centre`, far enough that a ball of
 /// `radius` fills about 90% of the shorter image side.
 pub fn sphere_views(
@@ -280,6 +330,45 @@ mod tests {
         }
         // Evenly spread: the mean direction nearly cancels.
         assert!(mean.norm() / 50.0 < 0.05, "{}", mean.norm() / 50.0);
+    }
+
+    #[test]
+    fn a_camera_set_gives_evenly_taken_cameras_with_the_pinhole_scaled() {
+        let cameras = CameraSet {
+            camera_to_model: (0..10)
+                .map(|i| Pose::translation(0.0, 0.0, -0.1 * (i + 1) as f64))
+                .collect(),
+            intrinsics: Intrinsics {
+                width: 640,
+                height: 480,
+                fx: 600.0,
+                fy: 610.0,
+                cx: 330.0,
+                cy: 236.0,
+            },
+            source: "test".into(),
+        };
+        let views = cameras.views(4, 160, 100);
+        let depths: Vec<f64> = views
+            .iter()
+            .map(|v| -v.camera_to_world.translation.vector.z)
+            .collect();
+        // Cameras 1, 3, 6 and 8 of 0..10.
+        assert_eq!(depths.len(), 4);
+        for (d, want) in depths.iter().zip([0.2, 0.4, 0.7, 0.9]) {
+            assert!((d - want).abs() < 1e-12, "{depths:?}");
+        }
+        // 640x480 fits 160x100 at a scale of 100/480, square pixels,
+        // the principal point as far off centre (scaled) as it was.
+        let k = views[0].intrinsics;
+        let scale = 100.0 / 480.0;
+        assert_eq!((k.width, k.height), (160, 100));
+        assert!((k.fx - 600.0 * scale).abs() < 1e-9 && (k.fy - 610.0 * scale).abs() < 1e-9);
+        assert!((k.cx - (80.0 + 10.0 * scale)).abs() < 1e-9);
+        assert!((k.cy - (50.0 - 4.0 * scale)).abs() < 1e-9);
+        assert!(views.iter().all(|v| v.near > 0.0 && v.far > v.near));
+        // Fewer cameras than asked for: all of them.
+        assert_eq!(cameras.views(100, 160, 100).len(), 10);
     }
 
     #[test]

@@ -8,6 +8,7 @@ use omniscan_core::Pose;
 use omniscan_inspect::closeup::CloseUpSettings;
 use omniscan_inspect::generate::{CopySettings, DefectKind, good_copy, plant_defect, test_part};
 use omniscan_inspect::report::write_report;
+use omniscan_inspect::views::CameraSet;
 use omniscan_inspect::{InspectSettings, inspect};
 use omniscan_splat::Splats;
 
@@ -170,6 +171,75 @@ fn lighting_baked_into_one_copy_is_not_a_defect() {
     )
     .unwrap();
     assert_eq!(raw.verdict.defective, Some(1), "{:#?}", raw.verdict);
+}
+
+#[test]
+fn a_scans_cameras_are_zoomed_onto_the_part_and_find_its_defect() {
+    // A scan's cameras: a ring around the first copy, 40 cm away with a
+    // wide lens, aimed 4 cm beside the part, so it is small and off-centre
+    // in each 640x480 image.
+    let (copies, centre) = triplet(Some((DefectKind::Tape, 8.0)), 2, 2);
+    let part_centre = copies[0]
+        .means
+        .iter()
+        .fold(nalgebra::Vector3::zeros(), |s, m| {
+            s + nalgebra::Vector3::from(m.map(|v| v as f64))
+        })
+        / copies[0].len() as f64;
+    let part_centre = Point3::from(part_centre);
+    let camera_to_model: Vec<Pose> = (0..60)
+        .map(|i| {
+            let azimuth = i as f64 * std::f64::consts::TAU / 20.0;
+            let elevation = [-0.2f64, 0.4, 1.0][i / 20];
+            let direction = nalgebra::Vector3::new(
+                elevation.cos() * azimuth.cos(),
+                elevation.cos() * azimuth.sin(),
+                elevation.sin(),
+            );
+            let beside = part_centre + direction.cross(&nalgebra::Vector3::z()) * 0.04;
+            omniscan_core::geometry::look_at(
+                &(part_centre + 0.4 * direction),
+                &beside,
+                &nalgebra::Vector3::z(),
+            )
+        })
+        .collect();
+    let cameras = CameraSet {
+        camera_to_model,
+        intrinsics: omniscan_core::Intrinsics {
+            width: 640,
+            height: 480,
+            fx: 500.0,
+            fy: 500.0,
+            cx: 320.0,
+            cy: 240.0,
+        },
+        source: "a test ring".into(),
+    };
+    let settings = InspectSettings {
+        cameras: Some(cameras.clone()),
+        ..settings()
+    };
+    let result = inspect(&copies, &settings).unwrap();
+    assert_eq!(result.views.len(), 40);
+    for view in &result.views {
+        // Same viewpoint as one of the scan's cameras...
+        assert!(cameras.camera_to_model.iter().any(|c| {
+            (c.translation.vector - view.camera_to_world.translation.vector).norm() < 1e-12
+        }),);
+        // ...but the part fills the middle of the image, where it filled
+        // about a tenth of the scan's width off to one side.
+        let p = view.camera_to_world.inverse() * part_centre;
+        let k = &view.intrinsics;
+        let (u, v) = (k.fx * p.x / p.z + k.cx, k.fy * p.y / p.z + k.cy);
+        assert!(
+            (u - 64.0).abs() < 13.0 && (v - 48.0).abs() < 10.0,
+            "part centre at ({u:.1}, {v:.1})"
+        );
+        assert!(k.fx > 4.0 * 500.0 * 128.0 / 640.0, "focal {}", k.fx);
+    }
+    assert_eq!(result.verdict.defective, Some(2), "{:#?}", result.verdict);
+    assert!(located(&result, 2, &centre.unwrap(), 8.0));
 }
 
 #[test]

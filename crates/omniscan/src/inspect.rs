@@ -61,6 +61,15 @@ pub struct InspectArgs {
     /// Views rendered of every model.
     #[arg(long, default_value_t = 100)]
     pub views: usize,
+    /// Render the cameras of this capture (the first model's scan, as the paper does) instead of
+    /// views spread over a sphere: --views of them, taken evenly, each zoomed onto the part. The
+    /// first model must be in the capture's frame (omniscan's twins are), at --units-per-metre.
+    #[arg(long)]
+    pub capture: Option<PathBuf>,
+    /// Which of the capture's cameras, with --capture: one arm's (in its gripper's frame) or both
+    /// (in the left gripper's frame, as `omniscan train --arm both`).
+    #[arg(long, value_enum, default_value = "both", requires = "capture")]
+    pub arm: crate::train::ArmSet,
     #[command(flatten)]
     pub colour: ColourMatchArgs,
     /// Render width, pixels.
@@ -103,11 +112,16 @@ fn settings_from(args: &InspectArgs) -> Result<InspectSettings> {
             Some(indices)
         }
     };
+    let cameras = match &args.capture {
+        None => None,
+        Some(path) => Some(capture_cameras(path, args.arm, args.units_per_metre)?),
+    };
     let mut settings = InspectSettings {
         units_per_metre: args.units_per_metre,
         threshold_mm: args.threshold_mm,
         colour_threshold: args.colour_threshold,
         views: args.views,
+        cameras,
         photometric_radius_mm: args.colour.radius_mm(),
         width: args.width,
         height: args.height,
@@ -118,6 +132,41 @@ fn settings_from(args: &InspectArgs) -> Result<InspectSettings> {
     };
     settings.align.seed = args.seed;
     Ok(settings)
+}
+
+/// The cameras of `path`'s capture (`arm`'s frames, in that set's frame),
+/// camera-to-model with positions in model units.
+fn capture_cameras(
+    path: &Path,
+    arm: crate::train::ArmSet,
+    units_per_metre: f64,
+) -> Result<omniscan_inspect::views::CameraSet> {
+    let capture = omniscan_core::Capture::load(path)
+        .with_context(|| format!("reading the capture {}", path.display()))?;
+    let camera_to_model: Vec<Pose> =
+        omniscan_core::poses::camera_views(&capture, arm.view_set(&capture))
+            .into_iter()
+            .map(|v| {
+                let mut pose = v.camera_to_object;
+                pose.translation.vector *= units_per_metre;
+                pose
+            })
+            .collect();
+    if camera_to_model.is_empty() {
+        bail!(
+            "the capture {} has no frames of the {arm:?} arm(s)",
+            path.display()
+        );
+    }
+    Ok(omniscan_inspect::views::CameraSet {
+        camera_to_model,
+        intrinsics: *capture.intrinsics(),
+        source: format!(
+            "{} ({} arms)",
+            path.display(),
+            format!("{arm:?}").to_lowercase()
+        ),
+    })
 }
 
 fn spinner(message: &str) -> ProgressBar {

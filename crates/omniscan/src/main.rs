@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use clap::{Args, Parser, Subcommand, ValueEnum};
+use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
@@ -61,7 +61,7 @@ enum Command {
     ExportNerfstudio {
         capture: PathBuf,
         #[arg(long, value_enum)]
-        arm: ArmChoice,
+        arm: train::ArmSet,
         #[arg(long)]
         out: PathBuf,
         /// Leave out mask_path (train on whole images).
@@ -120,14 +120,6 @@ enum BenchCommand {
         #[arg(long)]
         json: bool,
     },
-}
-
-#[derive(Clone, Copy, ValueEnum)]
-enum ArmChoice {
-    Left,
-    Right,
-    /// Both arms in the left gripper's frame, merged with the handover estimate T_lh⁻¹·T_rh.
-    Both,
 }
 
 #[derive(Args, Clone)]
@@ -422,11 +414,7 @@ fn run(cli: Cli) -> Result<()> {
             no_masks,
         } => {
             let loaded = Capture::load(&capture)?;
-            let views = match arm {
-                ArmChoice::Left => ViewSet::Arm(Arm::Left),
-                ArmChoice::Right => ViewSet::Arm(Arm::Right),
-                ArmChoice::Both => ViewSet::merged_from_handover(&loaded),
-            };
+            let views = arm.view_set(&loaded);
             let summary = export_nerfstudio(
                 &loaded,
                 &out,

@@ -19,8 +19,19 @@ use omniscan_splat::train::{
 pub enum ArmSet {
     Left,
     Right,
-    /// Both arms in the left gripper's frame, merged with the handover estimate.
+    /// Both arms in the left gripper's frame, merged with the handover estimate T_lh⁻¹·T_rh.
     Both,
+}
+
+impl ArmSet {
+    /// The capture's frames these arms stand for, and the frame they are in.
+    pub fn view_set(self, capture: &Capture) -> ViewSet {
+        match self {
+            ArmSet::Left => ViewSet::Arm(Arm::Left),
+            ArmSet::Right => ViewSet::Arm(Arm::Right),
+            ArmSet::Both => ViewSet::merged_from_handover(capture),
+        }
+    }
 }
 
 #[derive(clap::Args)]
@@ -250,12 +261,11 @@ fn load_views(
         )?);
     }
     let capture = Capture::load(path)?;
-    let set = match arm {
-        ArmSet::Left => ViewSet::Arm(Arm::Left),
-        ArmSet::Right => ViewSet::Arm(Arm::Right),
-        ArmSet::Both => ViewSet::merged_from_handover(&capture),
-    };
-    Ok(views_from_capture(&capture, set, downscale)?)
+    Ok(views_from_capture(
+        &capture,
+        arm.view_set(&capture),
+        downscale,
+    )?)
 }
 
 /// `omniscan eval`: PSNR/SSIM of a model against a capture's images, whole

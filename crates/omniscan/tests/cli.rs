@@ -506,8 +506,41 @@ fn inspect_names_the_defective_copy_and_writes_the_report() {
     assert_eq!(verdict["type"], "geometric");
     assert!(Path::new(&report).join("report.html").exists());
     assert!(Path::new(&report).join("defects.ply").exists());
+    assert_eq!(verdict["views_from"], "sphere around the first model");
 
-    // Two models, a missing file, a reference that is not a model: clear errors.
+    // The same from a scan's cameras (as the paper renders), zoomed onto the part.
+    let capture = dir.path().join("capture");
+    tiny_capture(&capture);
+    let o = omniscan(&[
+        "inspect",
+        &path("a.ply"),
+        &path("b.ply"),
+        &path("c.ply"),
+        "--out",
+        &path("report_capture"),
+        "--capture",
+        capture.to_str().unwrap(),
+        "--width",
+        "128",
+        "--height",
+        "96",
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let verdict: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(verdict["defective"], path("b.ply"));
+    // 3 wrist angles x 2 latitudes per arm.
+    assert_eq!(verdict["views"], 12);
+    assert!(
+        verdict["views_from"]
+            .as_str()
+            .unwrap()
+            .ends_with("capture (both arms)"),
+        "{}",
+        verdict["views_from"]
+    );
+
+    // Two models, a missing file, a missing capture, a reference that is not a model: clear errors.
     let o = omniscan(&["inspect", &path("a.ply"), &path("b.ply"), "--out", &report]);
     assert!(!o.status.success());
     let o = omniscan(&[
@@ -520,6 +553,18 @@ fn inspect_names_the_defective_copy_and_writes_the_report() {
     ]);
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("nope.ply"));
+    let o = omniscan(&[
+        "inspect",
+        &path("a.ply"),
+        &path("b.ply"),
+        &path("c.ply"),
+        "--out",
+        &report,
+        "--capture",
+        &path("no_capture"),
+    ]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("no_capture"));
     let o = omniscan(&[
         "inspect",
         &path("a.ply"),
