@@ -402,7 +402,11 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
         });
         if region.kind == Kind::Geometric && !known {
             let mut region = region.clone();
-            apply_noise_floors(std::slice::from_mut(&mut region), &floors);
+            apply_noise_floors(
+                std::slice::from_mut(&mut region),
+                &floors,
+                &verdict_settings,
+            );
             regions.push(region);
         }
     }

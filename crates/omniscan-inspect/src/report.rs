@@ -63,8 +63,12 @@ pub struct VerdictFile<'a> {
     defective_index: Option<usize>,
     #[serde(rename = "type")]
     defect_type: &'a str,
-    /// Significant defect area of the defective model, mm².
+    /// How far the defective model's clearest significant region stands
+    /// out: its area over the larger of its noise floor and its kind's
+    /// minimum area (0 with none named).
     score: f64,
+    /// Significant defect area of the defective model, mm² (0 with none).
+    defect_area_mm2: f64,
     models: Vec<String>,
     references: Option<Vec<String>>,
     regions: Vec<RegionEntry<'a>>,
@@ -93,8 +97,10 @@ little geometric evidence (too little for a region) points at one model, that pl
 again from up to 16 of the views that see it, zoomed to 0.4 mm pixels, and judged by the same \
 rules (its regions have close_up true). A region is significant when it is over the minimum area \
 of its kind and at least twice its noise floor: the largest region of the same kind on the other \
-models (twins of good copies differ a little everywhere). The model with the largest significant \
-area is defective (none when no region is significant). Before colours are compared, each \
+models (twins of good copies differ a little everywhere). The defective model is the one whose \
+clearest significant region stands out most: its area over the larger of its noise floor and its \
+kind's minimum area (standing_out; the verdict's score), the larger significant area breaking ties \
+(none when no region is significant). Before colours are compared, each \
 model's surface colours are matched to the first model's by a gain that varies slowly over the \
 surface (colour_matching: lighting is baked into each scan). The paper's rule (the pair with the \
 smallest mean pixel distance is the good pair, on raw renders) is reported and breaks exact ties.";
@@ -118,6 +124,9 @@ pub fn verdict_file<'a>(
         defective_index: v.defective,
         defect_type: &v.defect_type,
         score: v.score,
+        defect_area_mm2: v
+            .defective
+            .map_or(0.0, |d| v.geometric_area_mm2[d] + v.visual_area_mm2[d]),
         models: (0..inspection.renders.len())
             .map(|i| name(paths, i))
             .collect(),
@@ -445,9 +454,11 @@ pub fn write_report(
         Some(d) => {
             let _ = write!(
                 html,
-                "Defective: <b>{}</b> ({} defect, {:.1} mm² of significant regions)",
+                "Defective: <b>{}</b> ({} defect, {:.1} mm² of significant regions, the clearest \
+                 {:.1} times what the other copies differ by)",
                 escape(&name(paths, d)),
                 escape(&v.defect_type),
+                v.geometric_area_mm2[d] + v.visual_area_mm2[d],
                 v.score
             );
         }
@@ -456,11 +467,11 @@ pub fn write_report(
         }
     }
     html.push_str("</p><h2>Regions</h2><table><tr><th>model</th><th>kind</th><th>centroid (model units)</th>\
-                   <th>extent mm</th><th>area mm²</th><th>noise floor mm²</th><th>mean difference</th><th>significant</th></tr>");
+                   <th>extent mm</th><th>area mm²</th><th>noise floor mm²</th><th>standing out</th><th>mean difference</th><th>significant</th></tr>");
     for r in &v.regions {
         let _ = write!(
             html,
-            "<tr><td>{}</td><td>{:?}</td><td>{:.4}, {:.4}, {:.4}</td><td>{:.1}</td><td>{:.1}</td><td>{:.1}</td><td>{:.3}</td><td>{}</td></tr>",
+            "<tr><td>{}</td><td>{:?}</td><td>{:.4}, {:.4}, {:.4}</td><td>{:.1}</td><td>{:.1}</td><td>{:.1}</td><td>{:.1}</td><td>{:.3}</td><td>{}</td></tr>",
             escape(&name(paths, r.model)),
             r.kind,
             r.centroid[0],
@@ -469,6 +480,7 @@ pub fn write_report(
             r.extent_mm,
             r.area_mm2,
             r.noise_floor_mm2,
+            r.standing_out,
             r.mean_difference,
             if r.significant { "yes" } else { "no" }
         );

@@ -221,14 +221,16 @@ pub fn run(args: InspectArgs) -> Result<()> {
     }
     match v.defective {
         Some(d) => println!(
-            "defective: {} ({} defect, {:.1} mm² in {} significant region(s))",
+            "defective: {} ({} defect, {:.1} mm² in {} significant region(s), the clearest {:.1} \
+             times what the other copies differ by)",
             args.models[d].display(),
             v.defect_type,
-            v.score,
+            v.geometric_area_mm2[d] + v.visual_area_mm2[d],
             v.regions
                 .iter()
                 .filter(|r| r.significant && r.model == d)
-                .count()
+                .count(),
+            v.score
         ),
         None => println!("no defective model: the copies agree"),
     }
