@@ -485,20 +485,15 @@ fn inspect_names_the_defective_copy_and_writes_the_report() {
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     }
     let report = path("report");
-    let o = omniscan(&[
-        "inspect",
-        &path("a.ply"),
-        &path("b.ply"),
-        &path("c.ply"),
-        "--out",
-        &report,
-        "--views",
-        "40",
-        "--width",
-        "128",
-        "--height",
-        "96",
-        "--json",
+    // `inspect` on the three copies with `options`.
+    let inspect_copies = |options: &[&str]| {
+        let (a, b, c) = (path("a.ply"), path("b.ply"), path("c.ply"));
+        let mut args = vec!["inspect", a.as_str(), b.as_str(), c.as_str()];
+        args.extend_from_slice(options);
+        omniscan(&args)
+    };
+    let o = inspect_copies(&[
+        "--out", &report, "--views", "40", "--width", "128", "--height", "96", "--json",
     ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let verdict: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
@@ -511,11 +506,7 @@ fn inspect_names_the_defective_copy_and_writes_the_report() {
     // The same from a scan's cameras (as the paper renders), zoomed onto the part.
     let capture = dir.path().join("capture");
     tiny_capture(&capture);
-    let o = omniscan(&[
-        "inspect",
-        &path("a.ply"),
-        &path("b.ply"),
-        &path("c.ply"),
+    let o = inspect_copies(&[
         "--out",
         &path("report_capture"),
         "--capture",
@@ -553,28 +544,10 @@ fn inspect_names_the_defective_copy_and_writes_the_report() {
     ]);
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("nope.ply"));
-    let o = omniscan(&[
-        "inspect",
-        &path("a.ply"),
-        &path("b.ply"),
-        &path("c.ply"),
-        "--out",
-        &report,
-        "--capture",
-        &path("no_capture"),
-    ]);
+    let o = inspect_copies(&["--out", &report, "--capture", &path("no_capture")]);
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("no_capture"));
-    let o = omniscan(&[
-        "inspect",
-        &path("a.ply"),
-        &path("b.ply"),
-        &path("c.ply"),
-        "--out",
-        &report,
-        "--reference",
-        "x.ply,a.ply",
-    ]);
+    let o = inspect_copies(&["--out", &report, "--reference", "x.ply,a.ply"]);
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("x.ply"));
 }
