@@ -258,35 +258,37 @@ enum Appearance {
     Texture,
 }
 
-/// The reference's renders and what the appearance test compares of them.
+/// The reference's renders and, per view, what the appearance test
+/// compares of them.
 struct Reference<'a> {
     renders: &'a [crate::views::ViewRender],
-    contrast: Vec<Vec<[f32; 3]>>,
-    texture: Vec<Vec<[f32; 2]>>,
+    features: Features,
+}
+
+enum Features {
+    /// [`Appearance::ColourAndContrast`]: [`local_contrast`] of each view.
+    Contrast(Vec<Vec<[f32; 3]>>),
+    /// [`Appearance::Texture`]: [`chroma_texture`] of each view.
+    Texture(Vec<Vec<[f32; 2]>>),
 }
 
 impl<'a> Reference<'a> {
     fn new(renders: &'a [crate::views::ViewRender], appearance: Appearance) -> Reference<'a> {
-        let (mut contrast, mut texture) = (Vec::new(), Vec::new());
-        match appearance {
-            Appearance::ColourAndContrast => {
-                contrast = renders
+        let features = match appearance {
+            Appearance::ColourAndContrast => Features::Contrast(
+                renders
                     .iter()
                     .map(|r| local_contrast(r, CONTRAST_RADIUS))
-                    .collect()
-            }
-            Appearance::Texture => {
-                texture = renders
+                    .collect(),
+            ),
+            Appearance::Texture => Features::Texture(
+                renders
                     .iter()
                     .map(|r| chroma_texture(r, CONTRAST_RADIUS))
-                    .collect()
-            }
-        }
-        Reference {
-            renders,
-            contrast,
-            texture,
-        }
+                    .collect(),
+            ),
+        };
+        Reference { renders, features }
     }
 }
 
@@ -299,24 +301,23 @@ fn appearance_distance(
     pose: &Pose,
     views: &[View],
     reference: &Reference,
-    appearance: Appearance,
 ) -> Result<f64, InspectError> {
     let moved = model.transformed(pose, 1.0)?;
     let renders = render_views(&moved, views);
     let (mut sum, mut count) = (0.0, 0usize);
     for (v, (a, b)) in renders.iter().zip(reference.renders).enumerate() {
-        if appearance == Appearance::Texture {
-            let ta = chroma_texture(a, CONTRAST_RADIUS);
-            if let Some(agreement) =
-                texture_agreement(&ta, &reference.texture[v], &a.alpha, &b.alpha)
-            {
-                sum -= agreement;
-                count += 1;
+        let cb = match &reference.features {
+            Features::Texture(texture) => {
+                let ta = chroma_texture(a, CONTRAST_RADIUS);
+                if let Some(agreement) = texture_agreement(&ta, &texture[v], &a.alpha, &b.alpha) {
+                    sum -= agreement;
+                    count += 1;
+                }
+                continue;
             }
-            continue;
-        }
+            Features::Contrast(contrast) => &contrast[v],
+        };
         let ca = local_contrast(a, CONTRAST_RADIUS);
-        let cb = &reference.contrast[v];
         let distance = |p: [f32; 3], q: [f32; 3]| {
             (0..3)
                 .map(|k| (p[k] - q[k]).powi(2) as f64)
@@ -349,7 +350,7 @@ fn appearance_distances(
     let reference = Reference::new(reference, appearance);
     let scores: Vec<f64> = candidates
         .par_iter()
-        .map(|r| appearance_distance(model, &r.transformation, views, &reference, appearance))
+        .map(|r| appearance_distance(model, &r.transformation, views, &reference))
         .collect::<Result<_, _>>()?;
     for (i, score) in scores.iter().enumerate() {
         tracing::debug!(
@@ -644,13 +645,15 @@ impl Turns<'_> {
         // lighting and did not rank the right turn of a scanned flashlight
         // among their first four.
         let n = angles.len();
+        // The turns before and after try `i` on its start's circle.
+        let neighbours = |i: usize| {
+            let (s, k) = (i / n, i % n);
+            [s * n + (k + n - 1) % n, s * n + (k + 1) % n]
+        };
         let rendered: Vec<usize> = (0..turned.len())
             .filter(|&i| {
-                let (s, k) = (i / n, i % n);
                 contends(&turned[i])
-                    || (circle
-                        && (contends(&turned[s * n + (k + 1) % n])
-                            || contends(&turned[s * n + (k + n - 1) % n])))
+                    || (circle && neighbours(i).iter().any(|&j| contends(&turned[j])))
             })
             .collect();
         let poses: Vec<&omniscan_register::icp::Registration> =
@@ -674,10 +677,7 @@ impl Turns<'_> {
                 if !circle {
                     return distance[i];
                 }
-                // The neighbours on the same start's circle.
-                let (s, k) = (i / n, i % n);
-                let before = distance[s * n + (k + n - 1) % n];
-                let after = distance[s * n + (k + 1) % n];
+                let [before, after] = neighbours(i).map(|j| distance[j]);
                 distance[i] - 0.5 * (before + after)
             })
             .collect();

@@ -132,20 +132,14 @@ fn framed_views(
     radius: f64,
     settings: &InspectSettings,
 ) -> Vec<View> {
-    let (mut views, recentre) = match &settings.cameras {
-        Some(cameras) => (
-            cameras.views(settings.views, settings.width, settings.height),
-            true,
-        ),
-        None => (
-            sphere_views(
-                centre,
-                1.15 * radius,
-                settings.views,
-                settings.width,
-                settings.height,
-            ),
-            false,
+    let mut views = match &settings.cameras {
+        Some(cameras) => cameras.views(settings.views, settings.width, settings.height),
+        None => sphere_views(
+            centre,
+            1.15 * radius,
+            settings.views,
+            settings.width,
+            settings.height,
         ),
     };
     let sigmoid = |x: f32| 1.0 / (1.0 + (-x).exp());
@@ -159,7 +153,7 @@ fn framed_views(
         .collect();
     for view in &mut views {
         let world_to_camera = view.camera_to_world.inverse();
-        let mut spans: Vec<(f64, f64)> = opaque
+        let spans: Vec<(f64, f64)> = opaque
             .iter()
             .filter_map(|p| {
                 let q = world_to_camera * p;
@@ -171,12 +165,14 @@ fn framed_views(
         }
         // The 2nd and 98th percentiles: stray floaters must not shrink the part.
         let percentile = |v: &[f64], p: usize| v[(v.len() * p / 100).min(v.len() - 1)];
-        let mut xs: Vec<f64> = spans.iter().map(|s| s.0).collect();
-        let mut ys: Vec<f64> = spans.drain(..).map(|s| s.1).collect();
-        xs.sort_by(f64::total_cmp);
-        ys.sort_by(f64::total_cmp);
+        let sorted = |coordinate: fn(&(f64, f64)) -> f64| {
+            let mut v: Vec<f64> = spans.iter().map(coordinate).collect();
+            v.sort_by(f64::total_cmp);
+            v
+        };
         let k = &mut view.intrinsics;
-        if recentre {
+        if settings.cameras.is_some() {
+            let (xs, ys) = (sorted(|s| s.0), sorted(|s| s.1));
             let middle = |v: &[f64]| 0.5 * (percentile(v, 2) + percentile(v, 98));
             let half = |v: &[f64]| 0.5 * (percentile(v, 98) - percentile(v, 2));
             let (half_width, half_height) = (0.5 * k.width as f64, 0.5 * k.height as f64);
@@ -189,12 +185,8 @@ fn framed_views(
                 k.cy = half_height - focal * middle(&ys);
             }
         } else {
-            let reach = |v: &[f64]| {
-                let mut magnitudes: Vec<f64> = v.iter().map(|x| x.abs()).collect();
-                magnitudes.sort_by(f64::total_cmp);
-                percentile(&magnitudes, 98)
-            };
-            let (sx, sy) = (reach(&xs), reach(&ys));
+            let sx = percentile(&sorted(|s| s.0.abs()), 98);
+            let sy = percentile(&sorted(|s| s.1.abs()), 98);
             let focal = (0.85 * k.cx / sx.max(1e-9)).min(0.85 * k.cy / sy.max(1e-9));
             if focal.is_finite() && focal > k.fx {
                 k.fx = focal;

@@ -96,6 +96,16 @@ pub struct VerdictSettings {
     pub min_visual_area_mm2: f64,
 }
 
+impl VerdictSettings {
+    /// The smallest region of `kind` that counts, mm².
+    pub fn minimum_area(&self, kind: Kind) -> f64 {
+        match kind {
+            Kind::Geometric => self.min_geometric_area_mm2,
+            Kind::Visual => self.min_visual_area_mm2,
+        }
+    }
+}
+
 /// The outcome.
 #[derive(Debug, Clone, Serialize)]
 pub struct Verdict {
@@ -199,10 +209,7 @@ fn cluster(
             let mean =
                 members.iter().map(|&i| evidence.magnitude[i]).sum::<f64>() / members.len() as f64;
             let area = members.len() as f64 * point_area;
-            let minimum = match kind {
-                Kind::Geometric => settings.min_geometric_area_mm2,
-                Kind::Visual => settings.min_visual_area_mm2,
-            };
+            let minimum = settings.minimum_area(kind);
             Some(Region {
                 model,
                 kind,
@@ -273,10 +280,7 @@ pub fn noise_floors(models: usize, regions: &[Region]) -> Vec<[f64; 2]> {
 pub fn apply_noise_floors(regions: &mut [Region], floors: &[[f64; 2]], settings: &VerdictSettings) {
     for r in regions {
         let floor = floors.get(r.model).map_or(0.0, |f| f[kind_index(r.kind)]);
-        let minimum = match r.kind {
-            Kind::Geometric => settings.min_geometric_area_mm2,
-            Kind::Visual => settings.min_visual_area_mm2,
-        };
+        let minimum = settings.minimum_area(r.kind);
         r.noise_floor_mm2 = floor;
         r.significant &= r.area_mm2 >= NOISE_RATIO * floor;
         r.standing_out = r.area_mm2 / floor.max(minimum).max(f64::MIN_POSITIVE);
