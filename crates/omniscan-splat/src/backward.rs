@@ -11,6 +11,11 @@
 //!   quaternion normalisation, the activations exp and sigmoid;
 //! - spherical harmonics, including the view direction's dependence on the mean.
 //!
+//! Each 4x4-pixel sub-tile replays the forward pass's compositing with the
+//! forward pass's culling, all 16 pixels at once, to learn which Gaussians
+//! each pixel composited; the reverse pass then runs pixel by pixel. (Before,
+//! every pixel replayed its whole tile's list on its own: a 130k-splat step
+//! at 640x480 spent 0.14 s here, now 0.10 s with the one-time packing.)
 //! Per-tile partial sums are added in tile order, so gradients are
 //! deterministic. Checked against gsplat's float64 autograd gradients and
 //! against finite differences.
@@ -19,8 +24,8 @@ use rayon::prelude::*;
 
 use crate::Real;
 use crate::raster::{
-    Camera, Colors, Gaussians, Mode, Projected, Settings, ViewGeometry, covariance, quat_to_rotmat,
-    tile_lists,
+    Camera, Colors, Gaussians, Mode, Projected, Settings, TileBins, ViewGeometry, bin_tiles,
+    covariance, quat_to_rotmat,
 };
 use crate::sh;
 
@@ -62,7 +67,9 @@ impl<F: Real> Gradients<F> {
     }
 }
 
-use crate::raster::{ALPHA_MAX, ALPHA_MIN, SIGMA_SKIP, T_STOP};
+use crate::raster::{
+    ALPHA_MAX, ALPHA_MIN, LANES, Packed, SIGMA_SKIP, SUBTILE, SubTiles, T_STOP, TILE, exponent,
+};
 
 /// Per-tile accumulators: (Gaussian, d mean2d, d conic, d opacity_view, d colour).
 type TileGrads<F> = Vec<(u32, [F; 2], [F; 3], F, [F; 3])>;
@@ -78,9 +85,8 @@ pub fn backward<F: Real>(
 ) -> Gradients<F> {
     let n = g.means.len();
     let (width, height) = (camera.width, camera.height);
-    let tiles = tile_lists(p, width, height);
-    let tx = width.div_ceil(crate::raster::TILE);
-    let tile = crate::raster::TILE;
+    let TileBins { packed, tiles } = bin_tiles(p, width, height);
+    let tx = width.div_ceil(TILE);
     let per_tile: Vec<TileGrads<F>> = (0..tiles.len())
         .into_par_iter()
         .map(|t| {
@@ -89,42 +95,37 @@ pub fn backward<F: Real>(
                 .iter()
                 .map(|&i| (i, [F::zero(); 2], [F::zero(); 3], F::zero(), [F::zero(); 3]))
                 .collect();
-            let (ox, oy) = ((t as u32 % tx) * tile, (t as u32 / tx) * tile);
-            let mut contributors: Vec<(usize, F, F, F, bool)> = Vec::new();
-            for py in oy..(oy + tile).min(height) {
-                for px in ox..(ox + tile).min(width) {
-                    let (fx, fy) = (F::c(px as f64 + 0.5), F::c(py as f64 + 0.5));
-                    // Forward again, remembering who contributed.
-                    contributors.clear();
-                    let mut t_acc = F::one();
-                    for (slot, &gi) in list.iter().enumerate() {
-                        let gi = gi as usize;
-                        let (sigma, _, _) = p.exponent(gi, fx, fy);
-                        if sigma < F::zero() || sigma > F::c(SIGMA_SKIP) {
-                            continue;
-                        }
-                        let vis = (-sigma).exp();
-                        let raw = p.opacities[gi] * vis;
-                        let alpha = raw.min(F::c(ALPHA_MAX));
-                        if alpha < F::c(ALPHA_MIN) {
-                            continue;
-                        }
-                        let next = t_acc * (F::one() - alpha);
-                        if next <= F::c(T_STOP) {
-                            break;
-                        }
-                        contributors.push((slot, alpha, vis, t_acc, raw > F::c(ALPHA_MAX)));
-                        t_acc = next;
+            let (ox, oy) = ((t as u32 % tx) * TILE, (t as u32 / tx) * TILE);
+            // The forward pass's packing and sub-tile culling, so each pixel
+            // meets exactly the Gaussians it composited, read from contiguous
+            // memory; each keeps its slot in the tile's list.
+            let in_tile: Vec<(Packed<F>, u32)> = list
+                .iter()
+                .enumerate()
+                .map(|(slot, &g)| (packed[g as usize], slot as u32))
+                .collect();
+            let (sub_tiles, dealt) = SubTiles::deal(&in_tile, |(g, _)| g.5, ox, oy, width, height);
+            let mut contributors: [Vec<Contributor<F>>; LANES] = Default::default();
+            for (q, local) in dealt.iter().enumerate() {
+                let Some(pixels) = sub_tiles.pixels(q) else {
+                    continue;
+                };
+                let (x0, x1, y0, y1) = pixels;
+                let t_final = replay(local, pixels, &mut contributors);
+                for (k, lane) in contributors.iter().enumerate() {
+                    let (px, py) = (x0 + k as u32 % SUBTILE, y0 + k as u32 / SUBTILE);
+                    if px >= x1 || py >= y1 {
+                        continue;
                     }
+                    let (fx, fy) = (F::c(px as f64 + 0.5), F::c(py as f64 + 0.5));
                     let pix = (py * width + px) as usize;
                     let dc = d_rgb[pix];
                     let da = d_alpha[pix];
-                    let t_final = t_acc;
+                    let t_final = t_final[k];
                     let mut behind = settings.background.map(|bg| bg * t_final);
-                    for &(slot, alpha, vis, t_i, clamped) in contributors.iter().rev() {
-                        let gi = list[slot] as usize;
-                        let c = p.colors[gi];
-                        let entry = &mut acc[slot];
+                    for &(index, alpha, vis, t_i, clamped) in lane.iter().rev() {
+                        let (([mx, my], [a, b, cc], _, c, _, _), slot) = local[index as usize];
+                        let entry = &mut acc[slot as usize];
                         let w = alpha * t_i;
                         for ch in 0..3 {
                             entry.4[ch] = entry.4[ch] + w * dc[ch];
@@ -140,8 +141,7 @@ pub fn backward<F: Real>(
                         }
                         entry.3 = entry.3 + d_alpha_i * vis;
                         let d_sigma = -d_alpha_i * alpha;
-                        let [a, b, cc] = p.conics[gi];
-                        let (_, dx, dy) = p.exponent(gi, fx, fy);
+                        let (dx, dy) = (mx - fx, my - fy);
                         entry.2[0] = entry.2[0] + d_sigma * F::c(0.5) * dx * dx;
                         entry.2[1] = entry.2[1] + d_sigma * dx * dy;
                         entry.2[2] = entry.2[2] + d_sigma * F::c(0.5) * dy * dy;
@@ -189,6 +189,69 @@ pub fn backward<F: Real>(
     grads
 }
 
+/// A Gaussian that a pixel composited: its index in the sub-tile's list,
+/// alpha, e^(−σ), the transmittance in front of it, and whether alpha was
+/// clamped at 0.99 (which passes no gradient).
+type Contributor<F> = (u32, F, F, F, bool);
+
+/// Composites one sub-tile's Gaussians again, all its pixels (lanes, as
+/// in the forward pass) at once, recording each pixel's contributors in
+/// `contributors` (one list per lane); returns each pixel's final
+/// transmittance. Every pixel sees the forward pass's operations in its
+/// order, so the record is exactly what the image was made of.
+fn replay<F: Real>(
+    local: &[(Packed<F>, u32)],
+    (x0, x1, y0, y1): (u32, u32, u32, u32),
+    contributors: &mut [Vec<Contributor<F>>; LANES],
+) -> [F; LANES] {
+    let lane = |k: usize| (x0 + k as u32 % SUBTILE, y0 + k as u32 / SUBTILE);
+    let fx: [F; LANES] = std::array::from_fn(|k| F::c(lane(k).0 as f64 + 0.5));
+    let fy: [F; LANES] = std::array::from_fn(|k| F::c(lane(k).1 as f64 + 0.5));
+    let mut done: [bool; LANES] = std::array::from_fn(|k| {
+        let (px, py) = lane(k);
+        px >= x1 || py >= y1
+    });
+    let mut active = done.iter().filter(|d| !**d).count();
+    let mut t_acc = [F::one(); LANES];
+    let mut sigma = [F::zero(); LANES];
+    let mut hit = [false; LANES];
+    contributors.iter_mut().for_each(Vec::clear);
+    for (index, &(([mx, my], conic, opacity, _, _, _), _)) in local.iter().enumerate() {
+        let mut any = false;
+        for k in 0..LANES {
+            sigma[k] = exponent(conic, mx - fx[k], my - fy[k]);
+            hit[k] = !done[k] && sigma[k] >= F::zero() && sigma[k] <= F::c(SIGMA_SKIP);
+            any |= hit[k];
+        }
+        if !any {
+            continue;
+        }
+        for k in 0..LANES {
+            if !hit[k] {
+                continue;
+            }
+            let vis = (-sigma[k]).exp();
+            let raw = opacity * vis;
+            let alpha = raw.min(F::c(ALPHA_MAX));
+            if alpha < F::c(ALPHA_MIN) {
+                continue;
+            }
+            let next = t_acc[k] * (F::one() - alpha);
+            if next <= F::c(T_STOP) {
+                done[k] = true;
+                active -= 1;
+                continue;
+            }
+            contributors[k].push((index as u32, alpha, vis, t_acc[k], raw > F::c(ALPHA_MAX)));
+            t_acc[k] = next;
+        }
+        if active == 0 {
+            break;
+        }
+    }
+    t_acc
+}
+
 fn mat3_mul<F: Real>(a: &[[F; 3]; 3], b: &[[F; 3]; 3]) -> [[F; 3]; 3] {
     let mut o = [[F::zero(); 3]; 3];
     for i in 0..3 {
@@ -225,233 +288,260 @@ fn project_backward<F: Real>(
     } = ViewGeometry::new(camera);
     let (fx, fy) = (camera.fx, camera.fy);
     let two = F::c(2.0);
-    for i in 0..g.means.len() {
-        if !p.visible(i) {
-            continue;
-        }
-        let m = g.means[i];
-        let pc =
-            [0, 1, 2].map(|r| rot[r][0] * m[0] + rot[r][1] * m[1] + rot[r][2] * m[2] + trans[r]);
-        let (x, y, z) = (pc[0], pc[1], pc[2]);
-        // Opacity (and the antialiasing compensation).
-        let d_ov = grads.opacities_view[i];
-        let (d_opacity, d_comp) = match settings.mode {
-            Mode::Classic => (d_ov, F::zero()),
-            Mode::Antialiased => (d_ov * p.compensations[i], d_ov * g.opacities[i]),
-        };
-        grads.opacities[i] = d_opacity;
-        // Colour: through the clamp, to RGB or SH (and the SH view direction).
-        let mut d_pc = [F::zero(); 3];
-        let mut d_mean = [F::zero(); 3];
-        match &g.colors {
-            Colors::Rgb(_) => grads.colors[i] = grads.colors_view[i],
-            Colors::Sh { degree, coeffs } => {
-                let k = sh::coefficients(*degree);
-                let dvec = [m[0] - campos[0], m[1] - campos[1], m[2] - campos[2]];
-                let len = (dvec[0] * dvec[0] + dvec[1] * dvec[1] + dvec[2] * dvec[2]).sqrt();
-                let dir = dvec.map(|t| t / len);
-                let raw = sh::evaluate(*degree, dir, &coeffs[i * k..(i + 1) * k]);
-                let d_raw: [F; 3] = [0, 1, 2].map(|ch| {
-                    if raw[ch] + F::c(0.5) < F::zero() {
-                        F::zero()
-                    } else {
-                        grads.colors_view[i][ch]
+    let Gradients {
+        means2d,
+        conics,
+        opacities_view,
+        colors_view,
+        means,
+        quats,
+        scales,
+        opacities,
+        colors,
+    } = grads;
+    let per_splat = match &g.colors {
+        Colors::Rgb(_) => 1,
+        Colors::Sh { degree, .. } => sh::coefficients(*degree),
+    };
+    // Each splat writes only its own entries.
+    let outputs = means
+        .par_iter_mut()
+        .zip(quats.par_iter_mut())
+        .zip(scales.par_iter_mut())
+        .zip(opacities.par_iter_mut())
+        .zip(colors.par_chunks_mut(per_splat));
+    outputs.enumerate().for_each(
+        |(i, ((((d_mean_out, d_quat_out), d_scale_out), d_opacity_out), d_colors_out))| {
+            if !p.visible(i) {
+                return;
+            }
+            let m = g.means[i];
+            let pc = [0, 1, 2]
+                .map(|r| rot[r][0] * m[0] + rot[r][1] * m[1] + rot[r][2] * m[2] + trans[r]);
+            let (x, y, z) = (pc[0], pc[1], pc[2]);
+            // Opacity (and the antialiasing compensation).
+            let d_ov = opacities_view[i];
+            let (d_opacity, d_comp) = match settings.mode {
+                Mode::Classic => (d_ov, F::zero()),
+                Mode::Antialiased => (d_ov * p.compensations[i], d_ov * g.opacities[i]),
+            };
+            *d_opacity_out = d_opacity;
+            // Colour: through the clamp, to RGB or SH (and the SH view direction).
+            let mut d_pc = [F::zero(); 3];
+            let mut d_mean = [F::zero(); 3];
+            match &g.colors {
+                Colors::Rgb(_) => d_colors_out[0] = colors_view[i],
+                Colors::Sh { degree, coeffs } => {
+                    let k = sh::coefficients(*degree);
+                    let dvec = [m[0] - campos[0], m[1] - campos[1], m[2] - campos[2]];
+                    let len = (dvec[0] * dvec[0] + dvec[1] * dvec[1] + dvec[2] * dvec[2]).sqrt();
+                    let dir = dvec.map(|t| t / len);
+                    let raw = sh::evaluate(*degree, dir, &coeffs[i * k..(i + 1) * k]);
+                    let d_raw: [F; 3] = [0, 1, 2].map(|ch| {
+                        if raw[ch] + F::c(0.5) < F::zero() {
+                            F::zero()
+                        } else {
+                            colors_view[i][ch]
+                        }
+                    });
+                    let basis = sh::basis(*degree, dir);
+                    for kk in 0..k {
+                        for ch in 0..3 {
+                            d_colors_out[kk][ch] = basis[kk] * d_raw[ch];
+                        }
                     }
-                });
-                let basis = sh::basis(*degree, dir);
-                for kk in 0..k {
-                    for ch in 0..3 {
-                        grads.colors[i * k + kk][ch] = basis[kk] * d_raw[ch];
+                    let dbasis = sh::basis_gradient(*degree, dir);
+                    let mut d_dir = [F::zero(); 3];
+                    for kk in 0..k {
+                        let s: F = (0..3).map(|ch| coeffs[i * k + kk][ch] * d_raw[ch]).sum();
+                        for a in 0..3 {
+                            d_dir[a] = d_dir[a] + dbasis[kk][a] * s;
+                        }
                     }
-                }
-                let dbasis = sh::basis_gradient(*degree, dir);
-                let mut d_dir = [F::zero(); 3];
-                for kk in 0..k {
-                    let s: F = (0..3).map(|ch| coeffs[i * k + kk][ch] * d_raw[ch]).sum();
+                    // Through the normalisation d = v/|v|.
+                    let dot = d_dir[0] * dir[0] + d_dir[1] * dir[1] + d_dir[2] * dir[2];
                     for a in 0..3 {
-                        d_dir[a] = d_dir[a] + dbasis[kk][a] * s;
-                    }
-                }
-                // Through the normalisation d = v/|v|.
-                let dot = d_dir[0] * dir[0] + d_dir[1] * dir[1] + d_dir[2] * dir[2];
-                for a in 0..3 {
-                    d_mean[a] = d_mean[a] + (d_dir[a] - dir[a] * dot) / len;
-                }
-            }
-        }
-        // Recompute the forward quantities this Gaussian needs.
-        let cov_w = covariance(g.quats[i], g.scales[i]);
-        let cov_c = mat3_mul(&mat3_mul(&rot, &cov_w), &mat3_t(&rot));
-        let (rx, ry) = (x / z, y / z);
-        let clamped_x = rx < -lim_x_neg || rx > lim_x_pos;
-        let clamped_y = ry < -lim_y_neg || ry > lim_y_pos;
-        let tx = z * rx.max(-lim_x_neg).min(lim_x_pos);
-        let ty = z * ry.max(-lim_y_neg).min(lim_y_pos);
-        let j = [
-            [fx / z, F::zero(), -fx * tx / (z * z)],
-            [F::zero(), fy / z, -fy * ty / (z * z)],
-        ];
-        let mut cov2 = [[F::zero(); 2]; 2];
-        for r in 0..2 {
-            for c in 0..2 {
-                let mut s = F::zero();
-                for a in 0..3 {
-                    for b in 0..3 {
-                        s = s + j[r][a] * cov_c[a][b] * j[c][b];
-                    }
-                }
-                cov2[r][c] = s;
-            }
-        }
-        let (a, b, c) = (
-            cov2[0][0] + settings.eps2d,
-            (cov2[0][1] + cov2[1][0]) * F::c(0.5),
-            cov2[1][1] + settings.eps2d,
-        );
-        let det = a * c - b * b;
-        // Conic = inverse of [[a, b], [b, c]]; dL/dCov = −Inv·G·Inv with G symmetric.
-        let inv = [[c / det, -b / det], [-b / det, a / det]];
-        let dc = grads.conics[i];
-        let gm = [[dc[0], dc[1] * F::c(0.5)], [dc[1] * F::c(0.5), dc[2]]];
-        let mut d_cov2 = [[F::zero(); 2]; 2];
-        for r in 0..2 {
-            for s in 0..2 {
-                let mut acc = F::zero();
-                for u in 0..2 {
-                    for t in 0..2 {
-                        acc = acc + inv[r][u] * gm[u][t] * inv[t][s];
-                    }
-                }
-                d_cov2[r][s] = -acc;
-            }
-        }
-        if settings.mode == Mode::Antialiased && d_comp != F::zero() {
-            // comp = sqrt(det(cov) / det(cov + εI)); d comp/d cov = comp/2 · (cov⁻¹ − (cov + εI)⁻¹).
-            let det_raw = cov2[0][0] * cov2[1][1] - cov2[0][1] * cov2[1][0];
-            let comp = p.compensations[i];
-            if det_raw > F::zero() && comp > F::zero() {
-                let inv_raw = [
-                    [cov2[1][1] / det_raw, -cov2[0][1] / det_raw],
-                    [-cov2[1][0] / det_raw, cov2[0][0] / det_raw],
-                ];
-                for r in 0..2 {
-                    for s in 0..2 {
-                        d_cov2[r][s] =
-                            d_cov2[r][s] + d_comp * comp * F::c(0.5) * (inv_raw[r][s] - inv[r][s]);
+                        d_mean[a] = d_mean[a] + (d_dir[a] - dir[a] * dot) / len;
                     }
                 }
             }
-        }
-        // Mean: means2d = (fx x/z + cx, fy y/z + cy).
-        let dm2 = grads.means2d[i];
-        d_pc[0] = d_pc[0] + dm2[0] * fx / z;
-        d_pc[1] = d_pc[1] + dm2[1] * fy / z;
-        d_pc[2] = d_pc[2] - dm2[0] * fx * x / (z * z) - dm2[1] * fy * y / (z * z);
-        // cov2 = J Σc Jᵀ: dΣc = Jᵀ G J, dJ = (G + Gᵀ) J Σc.
-        let mut d_cov_c = [[F::zero(); 3]; 3];
-        for a in 0..3 {
-            for b in 0..3 {
-                let mut s = F::zero();
-                for r in 0..2 {
-                    for t in 0..2 {
-                        s = s + j[r][a] * d_cov2[r][t] * j[t][b];
+            // Recompute the forward quantities this Gaussian needs.
+            let cov_w = covariance(g.quats[i], g.scales[i]);
+            let cov_c = mat3_mul(&mat3_mul(&rot, &cov_w), &mat3_t(&rot));
+            let (rx, ry) = (x / z, y / z);
+            let clamped_x = rx < -lim_x_neg || rx > lim_x_pos;
+            let clamped_y = ry < -lim_y_neg || ry > lim_y_pos;
+            let tx = z * rx.max(-lim_x_neg).min(lim_x_pos);
+            let ty = z * ry.max(-lim_y_neg).min(lim_y_pos);
+            let j = [
+                [fx / z, F::zero(), -fx * tx / (z * z)],
+                [F::zero(), fy / z, -fy * ty / (z * z)],
+            ];
+            let mut cov2 = [[F::zero(); 2]; 2];
+            for r in 0..2 {
+                for c in 0..2 {
+                    let mut s = F::zero();
+                    for a in 0..3 {
+                        for b in 0..3 {
+                            s = s + j[r][a] * cov_c[a][b] * j[c][b];
+                        }
+                    }
+                    cov2[r][c] = s;
+                }
+            }
+            let (a, b, c) = (
+                cov2[0][0] + settings.eps2d,
+                (cov2[0][1] + cov2[1][0]) * F::c(0.5),
+                cov2[1][1] + settings.eps2d,
+            );
+            let det = a * c - b * b;
+            // Conic = inverse of [[a, b], [b, c]]; dL/dCov = −Inv·G·Inv with G symmetric.
+            let inv = [[c / det, -b / det], [-b / det, a / det]];
+            let dc = conics[i];
+            let gm = [[dc[0], dc[1] * F::c(0.5)], [dc[1] * F::c(0.5), dc[2]]];
+            let mut d_cov2 = [[F::zero(); 2]; 2];
+            for r in 0..2 {
+                for s in 0..2 {
+                    let mut acc = F::zero();
+                    for u in 0..2 {
+                        for t in 0..2 {
+                            acc = acc + inv[r][u] * gm[u][t] * inv[t][s];
+                        }
+                    }
+                    d_cov2[r][s] = -acc;
+                }
+            }
+            if settings.mode == Mode::Antialiased && d_comp != F::zero() {
+                // comp = sqrt(det(cov) / det(cov + εI)); d comp/d cov = comp/2 · (cov⁻¹ − (cov + εI)⁻¹).
+                let det_raw = cov2[0][0] * cov2[1][1] - cov2[0][1] * cov2[1][0];
+                let comp = p.compensations[i];
+                if det_raw > F::zero() && comp > F::zero() {
+                    let inv_raw = [
+                        [cov2[1][1] / det_raw, -cov2[0][1] / det_raw],
+                        [-cov2[1][0] / det_raw, cov2[0][0] / det_raw],
+                    ];
+                    for r in 0..2 {
+                        for s in 0..2 {
+                            d_cov2[r][s] = d_cov2[r][s]
+                                + d_comp * comp * F::c(0.5) * (inv_raw[r][s] - inv[r][s]);
+                        }
                     }
                 }
-                d_cov_c[a][b] = s;
             }
-        }
-        let mut d_j = [[F::zero(); 3]; 2];
-        for r in 0..2 {
-            for a in 0..3 {
-                let mut s = F::zero();
-                for t in 0..2 {
-                    for b in 0..3 {
-                        s = s + (d_cov2[r][t] + d_cov2[t][r]) * j[t][b] * cov_c[b][a];
-                    }
-                }
-                d_j[r][a] = s;
-            }
-        }
-        // J's dependence on the camera-space mean (the clamp freezes x/z or y/z).
-        let z2 = z * z;
-        let z3 = z2 * z;
-        d_pc[2] = d_pc[2] - d_j[0][0] * fx / z2 - d_j[1][1] * fy / z2;
-        if clamped_x {
-            d_pc[2] = d_pc[2] + d_j[0][2] * fx * (tx / z) / z2;
-        } else {
-            d_pc[0] = d_pc[0] - d_j[0][2] * fx / z2;
-            d_pc[2] = d_pc[2] + d_j[0][2] * two * fx * tx / z3;
-        }
-        if clamped_y {
-            d_pc[2] = d_pc[2] + d_j[1][2] * fy * (ty / z) / z2;
-        } else {
-            d_pc[1] = d_pc[1] - d_j[1][2] * fy / z2;
-            d_pc[2] = d_pc[2] + d_j[1][2] * two * fy * ty / z3;
-        }
-        // Camera to world: mean through Rᵀ, covariance as Rᵀ dΣc R.
-        for a in 0..3 {
-            d_mean[a] = d_mean[a] + rot[0][a] * d_pc[0] + rot[1][a] * d_pc[1] + rot[2][a] * d_pc[2];
-        }
-        grads.means[i] = d_mean;
-        let d_cov_w = mat3_mul(&mat3_mul(&mat3_t(&rot), &d_cov_c), &rot);
-        // Σ = M Mᵀ, M = R S.
-        let r = quat_to_rotmat(g.quats[i]);
-        let s = g.scales[i];
-        let mut mm = r;
-        for row in &mut mm {
-            for (jj, val) in row.iter_mut().enumerate() {
-                *val = *val * s[jj];
-            }
-        }
-        let sym = {
-            let mut o = [[F::zero(); 3]; 3];
+            // Mean: means2d = (fx x/z + cx, fy y/z + cy).
+            let dm2 = means2d[i];
+            d_pc[0] = d_pc[0] + dm2[0] * fx / z;
+            d_pc[1] = d_pc[1] + dm2[1] * fy / z;
+            d_pc[2] = d_pc[2] - dm2[0] * fx * x / (z * z) - dm2[1] * fy * y / (z * z);
+            // cov2 = J Σc Jᵀ: dΣc = Jᵀ G J, dJ = (G + Gᵀ) J Σc.
+            let mut d_cov_c = [[F::zero(); 3]; 3];
             for a in 0..3 {
                 for b in 0..3 {
-                    o[a][b] = d_cov_w[a][b] + d_cov_w[b][a];
+                    let mut s = F::zero();
+                    for r in 0..2 {
+                        for t in 0..2 {
+                            s = s + j[r][a] * d_cov2[r][t] * j[t][b];
+                        }
+                    }
+                    d_cov_c[a][b] = s;
                 }
             }
-            o
-        };
-        let d_m = mat3_mul(&sym, &mm);
-        let mut d_r = [[F::zero(); 3]; 3];
-        for a in 0..3 {
-            for b in 0..3 {
-                d_r[a][b] = d_m[a][b] * s[b];
-                grads.scales[i][b] = grads.scales[i][b] + d_m[a][b] * r[a][b];
+            let mut d_j = [[F::zero(); 3]; 2];
+            for r in 0..2 {
+                for a in 0..3 {
+                    let mut s = F::zero();
+                    for t in 0..2 {
+                        for b in 0..3 {
+                            s = s + (d_cov2[r][t] + d_cov2[t][r]) * j[t][b] * cov_c[b][a];
+                        }
+                    }
+                    d_j[r][a] = s;
+                }
             }
-        }
-        // Rotation matrix to the normalised quaternion, then through the normalisation.
-        let q = g.quats[i];
-        let norm = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
-        let [qw, qx, qy, qz] = q.map(|t| t / norm);
-        let gq = d_r;
-        let d_hat = [
-            two * (-qz * gq[0][1] + qy * gq[0][2] + qz * gq[1][0] - qx * gq[1][2] - qy * gq[2][0]
-                + qx * gq[2][1]),
-            two * (qy * gq[0][1] + qz * gq[0][2] + qy * gq[1][0]
-                - two * qx * gq[1][1]
-                - qw * gq[1][2]
-                + qz * gq[2][0]
-                + qw * gq[2][1]
-                - two * qx * gq[2][2]),
-            two * (-two * qy * gq[0][0]
-                + qx * gq[0][1]
-                + qw * gq[0][2]
-                + qx * gq[1][0]
-                + qz * gq[1][2]
-                - qw * gq[2][0]
-                + qz * gq[2][1]
-                - two * qy * gq[2][2]),
-            two * (-two * qz * gq[0][0] - qw * gq[0][1] + qx * gq[0][2] + qw * gq[1][0]
-                - two * qz * gq[1][1]
-                + qy * gq[1][2]
-                + qx * gq[2][0]
-                + qy * gq[2][1]),
-        ];
-        let hat = [qw, qx, qy, qz];
-        let dot = (0..4).map(|k| d_hat[k] * hat[k]).sum::<F>();
-        grads.quats[i] = [0, 1, 2, 3].map(|k| (d_hat[k] - hat[k] * dot) / norm);
-    }
+            // J's dependence on the camera-space mean (the clamp freezes x/z or y/z).
+            let z2 = z * z;
+            let z3 = z2 * z;
+            d_pc[2] = d_pc[2] - d_j[0][0] * fx / z2 - d_j[1][1] * fy / z2;
+            if clamped_x {
+                d_pc[2] = d_pc[2] + d_j[0][2] * fx * (tx / z) / z2;
+            } else {
+                d_pc[0] = d_pc[0] - d_j[0][2] * fx / z2;
+                d_pc[2] = d_pc[2] + d_j[0][2] * two * fx * tx / z3;
+            }
+            if clamped_y {
+                d_pc[2] = d_pc[2] + d_j[1][2] * fy * (ty / z) / z2;
+            } else {
+                d_pc[1] = d_pc[1] - d_j[1][2] * fy / z2;
+                d_pc[2] = d_pc[2] + d_j[1][2] * two * fy * ty / z3;
+            }
+            // Camera to world: mean through Rᵀ, covariance as Rᵀ dΣc R.
+            for a in 0..3 {
+                d_mean[a] =
+                    d_mean[a] + rot[0][a] * d_pc[0] + rot[1][a] * d_pc[1] + rot[2][a] * d_pc[2];
+            }
+            *d_mean_out = d_mean;
+            let d_cov_w = mat3_mul(&mat3_mul(&mat3_t(&rot), &d_cov_c), &rot);
+            // Σ = M Mᵀ, M = R S.
+            let r = quat_to_rotmat(g.quats[i]);
+            let s = g.scales[i];
+            let mut mm = r;
+            for row in &mut mm {
+                for (jj, val) in row.iter_mut().enumerate() {
+                    *val = *val * s[jj];
+                }
+            }
+            let sym = {
+                let mut o = [[F::zero(); 3]; 3];
+                for a in 0..3 {
+                    for b in 0..3 {
+                        o[a][b] = d_cov_w[a][b] + d_cov_w[b][a];
+                    }
+                }
+                o
+            };
+            let d_m = mat3_mul(&sym, &mm);
+            let mut d_r = [[F::zero(); 3]; 3];
+            for a in 0..3 {
+                for b in 0..3 {
+                    d_r[a][b] = d_m[a][b] * s[b];
+                    d_scale_out[b] = d_scale_out[b] + d_m[a][b] * r[a][b];
+                }
+            }
+            // Rotation matrix to the normalised quaternion, then through the normalisation.
+            let q = g.quats[i];
+            let norm = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
+            let [qw, qx, qy, qz] = q.map(|t| t / norm);
+            let gq = d_r;
+            let d_hat = [
+                two * (-qz * gq[0][1] + qy * gq[0][2] + qz * gq[1][0]
+                    - qx * gq[1][2]
+                    - qy * gq[2][0]
+                    + qx * gq[2][1]),
+                two * (qy * gq[0][1] + qz * gq[0][2] + qy * gq[1][0]
+                    - two * qx * gq[1][1]
+                    - qw * gq[1][2]
+                    + qz * gq[2][0]
+                    + qw * gq[2][1]
+                    - two * qx * gq[2][2]),
+                two * (-two * qy * gq[0][0]
+                    + qx * gq[0][1]
+                    + qw * gq[0][2]
+                    + qx * gq[1][0]
+                    + qz * gq[1][2]
+                    - qw * gq[2][0]
+                    + qz * gq[2][1]
+                    - two * qy * gq[2][2]),
+                two * (-two * qz * gq[0][0] - qw * gq[0][1] + qx * gq[0][2] + qw * gq[1][0]
+                    - two * qz * gq[1][1]
+                    + qy * gq[1][2]
+                    + qx * gq[2][0]
+                    + qy * gq[2][1]),
+            ];
+            let hat = [qw, qx, qy, qz];
+            let dot = (0..4).map(|k| d_hat[k] * hat[k]).sum::<F>();
+            *d_quat_out = [0, 1, 2, 3].map(|k| (d_hat[k] - hat[k] * dot) / norm);
+        },
+    );
 }
 
 #[cfg(test)]

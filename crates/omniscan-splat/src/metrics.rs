@@ -5,6 +5,8 @@
 //! gripper excluded), and the gradient of a weighted mean SSIM with respect
 //! to the rendered image, for the D-SSIM term of the loss.
 
+use rayon::prelude::*;
+
 /// An RGB float image, row-major, values nominally in [0, 1].
 pub struct ImageView<'a> {
     pub width: usize,
@@ -26,35 +28,47 @@ fn window() -> [f64; 2 * RADIUS + 1] {
     w.map(|v| v / s)
 }
 
-/// Separable Gaussian filter with zero padding (same size).
+/// Separable Gaussian filter with zero padding (same size), rows in
+/// parallel. Each output sums its taps in window order, the vertical pass
+/// a row of taps at a time.
 fn blur(width: usize, height: usize, src: &[f64]) -> Vec<f64> {
     let w = window();
     let mut tmp = vec![0.0; src.len()];
-    for y in 0..height {
-        for x in 0..width {
-            let mut s = 0.0;
-            for (k, wk) in w.iter().enumerate() {
-                let xx = x as i64 + k as i64 - RADIUS as i64;
-                if xx >= 0 && (xx as usize) < width {
-                    s += wk * src[y * width + xx as usize];
+    tmp.par_chunks_mut(width.max(1))
+        .zip(src.par_chunks(width.max(1)))
+        .for_each(|(out, row)| {
+            for (x, o) in out.iter_mut().enumerate() {
+                let mut s = 0.0;
+                if x >= RADIUS && x + RADIUS < width {
+                    // Inside: every tap, no bounds to test.
+                    for (wk, v) in w.iter().zip(&row[x - RADIUS..=x + RADIUS]) {
+                        s += wk * v;
+                    }
+                } else {
+                    for (k, wk) in w.iter().enumerate() {
+                        let xx = x as i64 + k as i64 - RADIUS as i64;
+                        if xx >= 0 && (xx as usize) < width {
+                            s += wk * row[xx as usize];
+                        }
+                    }
                 }
+                *o = s;
             }
-            tmp[y * width + x] = s;
-        }
-    }
+        });
     let mut out = vec![0.0; src.len()];
-    for y in 0..height {
-        for x in 0..width {
-            let mut s = 0.0;
+    out.par_chunks_mut(width.max(1))
+        .enumerate()
+        .for_each(|(y, out)| {
             for (k, wk) in w.iter().enumerate() {
                 let yy = y as i64 + k as i64 - RADIUS as i64;
                 if yy >= 0 && (yy as usize) < height {
-                    s += wk * tmp[yy as usize * width + x];
+                    let row = &tmp[yy as usize * width..(yy as usize + 1) * width];
+                    for (o, t) in out.iter_mut().zip(row) {
+                        *o += wk * t;
+                    }
                 }
             }
-            out[y * width + x] = s;
-        }
-    }
+        });
     out
 }
 

@@ -176,9 +176,6 @@ impl<F> Projected<F> {
 }
 
 impl<F: Real> Projected<F> {
-    /// The Gaussian exponent σ of splat `g` at the sample point (x, y):
-    /// 0.5·(a·dx² + c·dy²) + b·dx·dy with d = mean − point, and the offset d.
-    #[inline]
     /// Half-extents in x and y of the ellipse where Gaussian `g`'s
     /// opacity·e^(-σ) falls to 1/255 (clamped to its 3.33σ radii); `None` when
     /// it can never reach 1/255. Every pixel outside is skipped by the
@@ -202,17 +199,13 @@ impl<F: Real> Projected<F> {
             },
         )
     }
+}
 
-    pub(crate) fn exponent(&self, g: usize, x: F, y: F) -> (F, F, F) {
-        let [a, b, c] = self.conics[g];
-        let dx = self.means2d[g][0] - x;
-        let dy = self.means2d[g][1] - y;
-        (
-            F::c(0.5) * (a * dx * dx + c * dy * dy) + b * dx * dy,
-            dx,
-            dy,
-        )
-    }
+/// The Gaussian exponent σ = 0.5·(a·dx² + c·dy²) + b·dx·dy of a splat with
+/// conic (a, b, c) at offset d = mean − sample point.
+#[inline]
+pub(crate) fn exponent<F: Real>([a, b, c]: [F; 3], dx: F, dy: F) -> F {
+    F::c(0.5) * (a * dx * dx + c * dy * dy) + b * dx * dy
 }
 
 /// Rotation matrix of the normalised quaternion (w, x, y, z).
@@ -377,54 +370,77 @@ pub fn project<F: Real>(
     p
 }
 
-/// Gaussians touching each tile, front to back (ties by index).
-pub fn tile_lists<F: Real>(p: &Projected<F>, width: u32, height: u32) -> Vec<Vec<u32>> {
+/// Every Gaussian as the compositing reads it ([`Packed`], computed once
+/// though most appear in several tiles: the reach alone, a logarithm and two
+/// square roots, was a tenth of a training step when each tile recomputed
+/// it), and the Gaussians touching each tile, front to back (ties by index).
+pub(crate) struct TileBins<F> {
+    pub packed: Vec<Packed<F>>,
+    pub tiles: Vec<Vec<u32>>,
+}
+
+pub(crate) fn bin_tiles<F: Real>(p: &Projected<F>, width: u32, height: u32) -> TileBins<F> {
     let (tx, ty) = (width.div_ceil(TILE), height.div_ceil(TILE));
-    let mut tiles: Vec<Vec<u32>> = vec![Vec::new(); (tx * ty) as usize];
     let tile = F::c(TILE as f64);
-    for i in 0..p.means2d.len() {
-        if !p.visible(i) {
-            continue;
-        }
-        let Some((rx, ry)) = p.reach(i) else {
-            continue;
-        };
-        let [mx, my] = p.means2d[i];
-        let x0 = ((mx - rx) / tile)
-            .floor()
-            .to_i64()
-            .unwrap_or(0)
-            .clamp(0, tx as i64);
-        let x1 = ((mx + rx) / tile)
-            .ceil()
-            .to_i64()
-            .unwrap_or(0)
-            .clamp(0, tx as i64);
-        let y0 = ((my - ry) / tile)
-            .floor()
-            .to_i64()
-            .unwrap_or(0)
-            .clamp(0, ty as i64);
-        let y1 = ((my + ry) / tile)
-            .ceil()
-            .to_i64()
-            .unwrap_or(0)
-            .clamp(0, ty as i64);
-        for y in y0..y1 {
-            for x in x0..x1 {
-                tiles[(y * tx as i64 + x) as usize].push(i as u32);
+    let cells = |v: F, round: fn(F) -> F, limit: u32| {
+        round(v / tile).to_i64().unwrap_or(0).clamp(0, limit as i64) as u32
+    };
+    // Each Gaussian packed, and the tiles its reach covers: x0..x1, y0..y1.
+    let (packed, covered): (Vec<Packed<F>>, Vec<Option<[u32; 4]>>) = (0..p.means2d.len())
+        .into_par_iter()
+        .map(|i| {
+            let reach = p.reach(i).filter(|_| p.visible(i));
+            let (rx, ry) = reach.unwrap_or((F::zero(), F::zero()));
+            let [mx, my] = p.means2d[i];
+            let reach_box = [mx - rx, mx + rx, my - ry, my + ry];
+            let packed = (
+                p.means2d[i],
+                p.conics[i],
+                p.opacities[i],
+                p.colors[i],
+                p.depths[i],
+                reach_box,
+            );
+            let rect = reach.map(|_| {
+                [
+                    cells(reach_box[0], F::floor, tx),
+                    cells(reach_box[1], F::ceil, tx),
+                    cells(reach_box[2], F::floor, ty),
+                    cells(reach_box[3], F::ceil, ty),
+                ]
+            });
+            (packed, rect)
+        })
+        .unzip();
+    let mut tiles: Vec<Vec<u32>> = vec![Vec::new(); (tx * ty) as usize];
+    for (i, rect) in covered.iter().enumerate() {
+        if let Some([x0, x1, y0, y1]) = *rect {
+            for y in y0..y1 {
+                for x in x0..x1 {
+                    tiles[(y * tx + x) as usize].push(i as u32);
+                }
             }
         }
     }
-    for list in &mut tiles {
-        list.sort_by(|&a, &b| {
-            p.depths[a as usize]
-                .partial_cmp(&p.depths[b as usize])
-                .unwrap_or(std::cmp::Ordering::Equal)
-                .then(a.cmp(&b))
-        });
-    }
-    tiles
+    // Depths as integers that sort the same way (IEEE order for finite
+    // values), so each list sorts on plain integer keys.
+    let key = |i: u32| {
+        let bits = p.depths[i as usize].to_f64().unwrap_or(f64::NAN).to_bits();
+        let ordered = if bits >> 63 == 1 {
+            !bits
+        } else {
+            bits | 1 << 63
+        };
+        (ordered, i)
+    };
+    tiles.par_iter_mut().for_each(|list| {
+        let mut keyed: Vec<(u64, u32)> = list.iter().map(|&i| key(i)).collect();
+        keyed.sort_unstable();
+        for (slot, (_, i)) in list.iter_mut().zip(keyed) {
+            *slot = i;
+        }
+    });
+    TileBins { packed, tiles }
 }
 
 /// A rendered image: colour with background, accumulated alpha, and the
@@ -449,12 +465,12 @@ pub struct Render<F> {
 
 /// A Gaussian as the compositing reads it: mean, conic, opacity, colour,
 /// depth, and the pixel box it can reach (x0, x1, y0, y1).
-type Packed<F> = ([F; 2], [F; 3], F, [F; 3], F, [F; 4]);
+pub(crate) type Packed<F> = ([F; 2], [F; 3], F, [F; 3], F, [F; 4]);
 
 /// Side of the sub-tiles that cull Gaussians before compositing and are
 /// composited together (4x4 pixels; with pixel-by-pixel compositing it was
 /// 20% faster than 8x8 at 160x120 on faint models, 2x2 slower).
-const SUBTILE: u32 = TILE / 4;
+pub(crate) const SUBTILE: u32 = TILE / 4;
 
 /// One pixel's result: index, colour, alpha, depth sum, median depth, contributors.
 type PixelResult<F> = (usize, [F; 3], F, F, F, u32);
@@ -466,7 +482,7 @@ pub fn rasterize<F: Real>(
     height: u32,
     background: [F; 3],
 ) -> Render<F> {
-    let tiles = tile_lists(p, width, height);
+    let TileBins { packed, tiles } = bin_tiles(p, width, height);
     let tx = width.div_ceil(TILE);
     let n = (width * height) as usize;
     let tile_out: Vec<(u32, Vec<PixelResult<F>>)> = (0..tiles.len() as u32)
@@ -474,55 +490,15 @@ pub fn rasterize<F: Real>(
         .map(|t| {
             let (ox, oy) = ((t % tx) * TILE, (t / tx) * TILE);
             // Gathered once per tile so the per-pixel loop reads contiguous memory.
-            let packed: Vec<Packed<F>> = tiles[t as usize]
+            let local: Vec<Packed<F>> = tiles[t as usize]
                 .iter()
-                .map(|&g| {
-                    let g = g as usize;
-                    let (rx, ry) = p.reach(g).unwrap_or((F::zero(), F::zero()));
-                    let [mx, my] = p.means2d[g];
-                    (
-                        p.means2d[g],
-                        p.conics[g],
-                        p.opacities[g],
-                        p.colors[g],
-                        p.depths[g],
-                        [mx - rx, mx + rx, my - ry, my + ry],
-                    )
-                })
+                .map(|&g| packed[g as usize])
                 .collect();
             let mut out = Vec::with_capacity((TILE * TILE) as usize);
-            // Each sub-tile of the tile composites only the Gaussians whose
-            // reach touches it: same order, same image, fewer misses. One
-            // pass over the tile's list deals every Gaussian to the sub-tiles
-            // it touches.
-            const SIDE: u32 = TILE / SUBTILE;
-            let bounds = |o: u32, q: u32, limit: u32| {
-                let (lo, hi) = (o + q * SUBTILE, (o + (q + 1) * SUBTILE).min(limit));
-                (lo, hi, F::c(lo as f64 + 0.5), F::c(hi as f64 - 0.5))
-            };
-            let columns: [(u32, u32, F, F); SIDE as usize] =
-                std::array::from_fn(|q| bounds(ox, q as u32, width));
-            let rows: [(u32, u32, F, F); SIDE as usize] =
-                std::array::from_fn(|q| bounds(oy, q as u32, height));
-            let mut dealt: Vec<Vec<Packed<F>>> = vec![Vec::new(); (SIDE * SIDE) as usize];
-            for g in &packed {
-                let [bx0, bx1, by0, by1] = g.5;
-                for (qy, &(y0, y1, lo_y, hi_y)) in rows.iter().enumerate() {
-                    if y0 >= y1 || by1 < lo_y || by0 > hi_y {
-                        continue;
-                    }
-                    for (qx, &(x0, x1, lo_x, hi_x)) in columns.iter().enumerate() {
-                        if x0 < x1 && bx1 >= lo_x && bx0 <= hi_x {
-                            dealt[qy * SIDE as usize + qx].push(*g);
-                        }
-                    }
-                }
-            }
+            let (sub_tiles, dealt) = SubTiles::deal(&local, |g| g.5, ox, oy, width, height);
             for (q, local) in dealt.iter().enumerate() {
-                let (x0, x1, _, _) = columns[q % SIDE as usize];
-                let (y0, y1, _, _) = rows[q / SIDE as usize];
-                if x0 < x1 && y0 < y1 {
-                    composite_block(local, (x0, x1, y0, y1), width, background, &mut out);
+                if let Some(pixels) = sub_tiles.pixels(q) {
+                    composite_block(local, pixels, width, background, &mut out);
                 }
             }
             (t, out)
@@ -549,8 +525,64 @@ pub fn rasterize<F: Real>(
     r
 }
 
+/// Sub-tiles per tile side.
+const SIDE: usize = (TILE / SUBTILE) as usize;
+
+/// The sub-tiles of one tile: the pixels each covers (clipped to the image)
+/// and the pixel centres at its edges.
+pub(crate) struct SubTiles<F> {
+    columns: [(u32, u32, F, F); SIDE],
+    rows: [(u32, u32, F, F); SIDE],
+}
+
+impl<F: Real> SubTiles<F> {
+    /// Deals the tile's Gaussians (`items`, front to back) to the sub-tiles
+    /// their reach box (x0, x1, y0, y1) touches, in one pass over the list,
+    /// keeping their order: compositing a sub-tile with only its own gives
+    /// the same pixels with fewer misses.
+    pub(crate) fn deal<T: Copy>(
+        items: &[T],
+        reach_box: impl Fn(&T) -> [F; 4],
+        ox: u32,
+        oy: u32,
+        width: u32,
+        height: u32,
+    ) -> (SubTiles<F>, Vec<Vec<T>>) {
+        let bounds = |o: u32, q: u32, limit: u32| {
+            let (lo, hi) = (o + q * SUBTILE, (o + (q + 1) * SUBTILE).min(limit));
+            (lo, hi, F::c(lo as f64 + 0.5), F::c(hi as f64 - 0.5))
+        };
+        let sub_tiles = SubTiles {
+            columns: std::array::from_fn(|q| bounds(ox, q as u32, width)),
+            rows: std::array::from_fn(|q| bounds(oy, q as u32, height)),
+        };
+        let mut dealt: Vec<Vec<T>> = vec![Vec::new(); SIDE * SIDE];
+        for item in items {
+            let [bx0, bx1, by0, by1] = reach_box(item);
+            for (qy, &(y0, y1, lo_y, hi_y)) in sub_tiles.rows.iter().enumerate() {
+                if y0 >= y1 || by1 < lo_y || by0 > hi_y {
+                    continue;
+                }
+                for (qx, &(x0, x1, lo_x, hi_x)) in sub_tiles.columns.iter().enumerate() {
+                    if x0 < x1 && bx1 >= lo_x && bx0 <= hi_x {
+                        dealt[qy * SIDE + qx].push(*item);
+                    }
+                }
+            }
+        }
+        (sub_tiles, dealt)
+    }
+
+    /// Pixels `x0..x1` × `y0..y1` of sub-tile `q` (as dealt), if any lie in the image.
+    pub(crate) fn pixels(&self, q: usize) -> Option<(u32, u32, u32, u32)> {
+        let (x0, x1, _, _) = self.columns[q % SIDE];
+        let (y0, y1, _, _) = self.rows[q / SIDE];
+        (x0 < x1 && y0 < y1).then_some((x0, x1, y0, y1))
+    }
+}
+
 /// Pixels composited together: one sub-tile.
-const LANES: usize = (SUBTILE * SUBTILE) as usize;
+pub(crate) const LANES: usize = (SUBTILE * SUBTILE) as usize;
 
 /// Composites `local` (front to back) into the pixels `x0..x1` × `y0..y1`
 /// of one sub-tile, all pixels at once: each Gaussian's exponent is computed
@@ -581,11 +613,10 @@ fn composite_block<F: Real>(
     let mut count = [0u32; LANES];
     let mut sigma = [F::zero(); LANES];
     let mut hit = [false; LANES];
-    for &([mx, my], [a, b, cc], opacity, color, depth, _) in local {
+    for &([mx, my], conic, opacity, color, depth, _) in local {
         let mut any = false;
         for k in 0..LANES {
-            let (dx, dy) = (mx - fx[k], my - fy[k]);
-            sigma[k] = F::c(0.5) * (a * dx * dx + cc * dy * dy) + b * dx * dy;
+            sigma[k] = exponent(conic, mx - fx[k], my - fy[k]);
             hit[k] = !done[k] && sigma[k] >= F::zero() && sigma[k] <= F::c(SIGMA_SKIP);
             any |= hit[k];
         }
@@ -735,7 +766,9 @@ mod tests {
                 let (fx, fy) = (px as f64 + 0.5, py as f64 + 0.5);
                 let (mut t, mut c, mut count) = (1.0, [0.0; 3], 0);
                 for &i in &order {
-                    let (sigma, _, _) = p.exponent(i, fx, fy);
+                    let [a, b, cc] = p.conics[i];
+                    let (dx, dy) = (p.means2d[i][0] - fx, p.means2d[i][1] - fy);
+                    let sigma = 0.5 * (a * dx * dx + cc * dy * dy) + b * dx * dy;
                     if !(0.0..=SIGMA_SKIP).contains(&sigma) {
                         continue;
                     }

@@ -21,6 +21,7 @@
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
 
 use crate::backend::Renderer;
 use crate::backward::backward;
@@ -98,15 +99,27 @@ impl Adam {
         self.step_with(params, grads, |_| lr, t);
     }
     /// A step with a learning rate per element.
-    fn step_with(&mut self, params: &mut [f32], grads: &[f32], lr: impl Fn(usize) -> f32, t: i32) {
+    fn step_with(
+        &mut self,
+        params: &mut [f32],
+        grads: &[f32],
+        lr: impl Fn(usize) -> f32 + Sync,
+        t: i32,
+    ) {
         let (b1, b2, eps) = (0.9f32, 0.999f32, 1e-15f32);
         let c1 = 1.0 - b1.powi(t);
         let c2 = 1.0 - b2.powi(t);
-        for i in 0..params.len() {
-            self.m[i] = b1 * self.m[i] + (1.0 - b1) * grads[i];
-            self.v[i] = b2 * self.v[i] + (1.0 - b2) * grads[i] * grads[i];
-            params[i] -= lr(i) * (self.m[i] / c1) / ((self.v[i] / c2).sqrt() + eps);
-        }
+        params
+            .par_iter_mut()
+            .zip(grads)
+            .zip(&mut self.m)
+            .zip(&mut self.v)
+            .enumerate()
+            .for_each(|(i, (((param, &grad), m), v))| {
+                *m = b1 * *m + (1.0 - b1) * grad;
+                *v = b2 * *v + (1.0 - b2) * grad * grad;
+                *param -= lr(i) * (*m / c1) / ((*v / c2).sqrt() + eps);
+            });
     }
     /// Keeps the moments of the kept entries (`stride` values per splat) and
     /// zeroes those of `added` new splats.

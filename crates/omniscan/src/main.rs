@@ -23,6 +23,15 @@ use omniscan_core::plan::ScanPlanConfig;
 use omniscan_core::poses::ViewSet;
 use omniscan_sim::{SimConfig, Simulation};
 
+/// mimalloc instead of the system allocator: a training step frees and
+/// takes back hundreds of megabytes of image-sized buffers (SSIM's blurs,
+/// per-pixel gradients), which glibc hands to the kernel and maps again each
+/// time; on the 2-core development VM the page clearing and TLB shootdowns
+/// of that made SSIM and its gradient 0.14 s instead of 0.06 s at 640x480,
+/// and a step on a 130k-splat model 0.41-0.52 s instead of 0.38 s.
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 #[derive(Parser)]
 #[command(
     name = "omniscan",
