@@ -137,10 +137,6 @@ impl Adam {
     }
 }
 
-fn flat3(v: &[[f32; 3]]) -> Vec<f32> {
-    v.iter().flatten().copied().collect()
-}
-
 /// The visual-hull initialisation described in the module docs.
 pub fn initial_splats(
     views: &[View],
@@ -566,33 +562,44 @@ pub fn train_resumable(
                     grad2d_count[i] += 1;
                 }
             }
-            // Adam steps.
-            let mut means = flat3(&s.means);
-            adam[0].step(&mut means, &flat3(&grads.means), means_lr, t);
-            let mut log_scales = flat3(&s.log_scales);
-            adam[1].step(&mut log_scales, &flat3(&grads.log_scales(&g)), 5e-3, t);
-            let mut quats: Vec<f32> = s.quats.iter().flatten().copied().collect();
+            // Adam steps, in place on the parameters' flattened storage.
+            adam[0].step(
+                s.means.as_flattened_mut(),
+                grads.means.as_flattened(),
+                means_lr,
+                t,
+            );
+            adam[1].step(
+                s.log_scales.as_flattened_mut(),
+                grads.log_scales(&g).as_flattened(),
+                5e-3,
+                t,
+            );
             adam[2].step(
-                &mut quats,
-                &grads.quats.iter().flatten().copied().collect::<Vec<_>>(),
+                s.quats.as_flattened_mut(),
+                grads.quats.as_flattened(),
                 1e-3,
                 t,
             );
             adam[3].step(&mut s.opacity_logits, &grads.opacity_logits(&g), 5e-2, t);
+            // Bands above the current degree get zero gradients (their moments still decay).
             let ka = coefficients(degree);
-            let mut sh_flat = flat3(&s.sh);
-            let mut sh_grad = vec![0.0f32; sh_flat.len()];
-            for i in 0..s.len() {
-                for kk in 0..ka {
-                    for c in 0..3 {
-                        sh_grad[(i * k + kk) * 3 + c] = grads.colors[i * ka + kk][c];
-                    }
+            let sh_grad: Vec<[f32; 3]> = if ka == k {
+                grads.colors
+            } else {
+                let mut padded = vec![[0.0f32; 3]; s.sh.len()];
+                for (to, from) in padded
+                    .chunks_exact_mut(k)
+                    .zip(grads.colors.chunks_exact(ka))
+                {
+                    to[..ka].copy_from_slice(from);
                 }
-            }
+                padded
+            };
             // DC and higher bands use different rates (gsplat: 2.5e-3 and 2.5e-3/20).
             adam[4].step_with(
-                &mut sh_flat,
-                &sh_grad,
+                s.sh.as_flattened_mut(),
+                sh_grad.as_flattened(),
                 |j| {
                     if (j / 3) % k == 0 {
                         2.5e-3
@@ -602,23 +609,6 @@ pub fn train_resumable(
                 },
                 t,
             );
-            for i in 0..s.len() {
-                s.means[i] = [means[i * 3], means[i * 3 + 1], means[i * 3 + 2]];
-                s.log_scales[i] = [
-                    log_scales[i * 3],
-                    log_scales[i * 3 + 1],
-                    log_scales[i * 3 + 2],
-                ];
-                s.quats[i] = [
-                    quats[i * 4],
-                    quats[i * 4 + 1],
-                    quats[i * 4 + 2],
-                    quats[i * 4 + 3],
-                ];
-            }
-            for (j, v) in sh_flat.chunks_exact(3).enumerate() {
-                s.sh[j] = [v[0], v[1], v[2]];
-            }
             progress(step, loss, image_psnr);
         }
 
