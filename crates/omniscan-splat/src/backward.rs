@@ -24,8 +24,8 @@ use rayon::prelude::*;
 
 use crate::Real;
 use crate::raster::{
-    Camera, Colors, Gaussians, Mode, Projected, Settings, TileBins, ViewGeometry, bin_tiles,
-    covariance, quat_to_rotmat,
+    Camera, Colors, Gaussians, LANES, Mode, Packed, Projected, Settings, SubTiles, TILE, TileBins,
+    ViewGeometry, bin_tiles, composite_lanes, covariance, lane_pixel, quat_to_rotmat,
 };
 use crate::sh;
 
@@ -67,9 +67,10 @@ impl<F: Real> Gradients<F> {
     }
 }
 
-use crate::raster::{
-    ALPHA_MAX, ALPHA_MIN, LANES, Packed, SIGMA_SKIP, SUBTILE, SubTiles, T_STOP, TILE, exponent,
-};
+/// Each lane's (pixel's) contributors: index in the sub-tile's list, alpha,
+/// e^(−σ), the transmittance in front, and whether alpha was clamped (which
+/// passes no gradient).
+type LaneContributors<F> = [Vec<(u32, F, F, F, bool)>; LANES];
 
 /// Per-tile accumulators: (Gaussian, d mean2d, d conic, d opacity_view, d colour).
 type TileGrads<F> = Vec<(u32, [F; 2], [F; 3], F, [F; 3])>;
@@ -105,15 +106,29 @@ pub fn backward<F: Real>(
                 .map(|(slot, &g)| (packed[g as usize], slot as u32))
                 .collect();
             let (sub_tiles, dealt) = SubTiles::deal(&in_tile, |(g, _)| g.5, ox, oy, width, height);
-            let mut contributors: [Vec<Contributor<F>>; LANES] = Default::default();
+            let mut contributors: LaneContributors<F> = Default::default();
             for (q, local) in dealt.iter().enumerate() {
                 let Some(pixels) = sub_tiles.pixels(q) else {
                     continue;
                 };
                 let (x0, x1, y0, y1) = pixels;
-                let t_final = replay(local, pixels, &mut contributors);
+                contributors.iter_mut().for_each(Vec::clear);
+                let t_final = composite_lanes(
+                    local,
+                    |(g, _)| g,
+                    pixels,
+                    |k, index, share| {
+                        contributors[k].push((
+                            index as u32,
+                            share.alpha,
+                            share.vis,
+                            share.transmittance,
+                            share.clamped,
+                        ));
+                    },
+                );
                 for (k, lane) in contributors.iter().enumerate() {
-                    let (px, py) = (x0 + k as u32 % SUBTILE, y0 + k as u32 / SUBTILE);
+                    let (px, py) = lane_pixel(x0, y0, k);
                     if px >= x1 || py >= y1 {
                         continue;
                     }
@@ -187,69 +202,6 @@ pub fn backward<F: Real>(
     };
     project_backward(g, camera, settings, p, &mut grads);
     grads
-}
-
-/// A Gaussian that a pixel composited: its index in the sub-tile's list,
-/// alpha, e^(−σ), the transmittance in front of it, and whether alpha was
-/// clamped at 0.99 (which passes no gradient).
-type Contributor<F> = (u32, F, F, F, bool);
-
-/// Composites one sub-tile's Gaussians again, all its pixels (lanes, as
-/// in the forward pass) at once, recording each pixel's contributors in
-/// `contributors` (one list per lane); returns each pixel's final
-/// transmittance. Every pixel sees the forward pass's operations in its
-/// order, so the record is exactly what the image was made of.
-fn replay<F: Real>(
-    local: &[(Packed<F>, u32)],
-    (x0, x1, y0, y1): (u32, u32, u32, u32),
-    contributors: &mut [Vec<Contributor<F>>; LANES],
-) -> [F; LANES] {
-    let lane = |k: usize| (x0 + k as u32 % SUBTILE, y0 + k as u32 / SUBTILE);
-    let fx: [F; LANES] = std::array::from_fn(|k| F::c(lane(k).0 as f64 + 0.5));
-    let fy: [F; LANES] = std::array::from_fn(|k| F::c(lane(k).1 as f64 + 0.5));
-    let mut done: [bool; LANES] = std::array::from_fn(|k| {
-        let (px, py) = lane(k);
-        px >= x1 || py >= y1
-    });
-    let mut active = done.iter().filter(|d| !**d).count();
-    let mut t_acc = [F::one(); LANES];
-    let mut sigma = [F::zero(); LANES];
-    let mut hit = [false; LANES];
-    contributors.iter_mut().for_each(Vec::clear);
-    for (index, &(([mx, my], conic, opacity, _, _, _), _)) in local.iter().enumerate() {
-        let mut any = false;
-        for k in 0..LANES {
-            sigma[k] = exponent(conic, mx - fx[k], my - fy[k]);
-            hit[k] = !done[k] && sigma[k] >= F::zero() && sigma[k] <= F::c(SIGMA_SKIP);
-            any |= hit[k];
-        }
-        if !any {
-            continue;
-        }
-        for k in 0..LANES {
-            if !hit[k] {
-                continue;
-            }
-            let vis = (-sigma[k]).exp();
-            let raw = opacity * vis;
-            let alpha = raw.min(F::c(ALPHA_MAX));
-            if alpha < F::c(ALPHA_MIN) {
-                continue;
-            }
-            let next = t_acc[k] * (F::one() - alpha);
-            if next <= F::c(T_STOP) {
-                done[k] = true;
-                active -= 1;
-                continue;
-            }
-            contributors[k].push((index as u32, alpha, vis, t_acc[k], raw > F::c(ALPHA_MAX)));
-            t_acc[k] = next;
-        }
-        if active == 0 {
-            break;
-        }
-    }
-    t_acc
 }
 
 fn mat3_mul<F: Real>(a: &[[F; 3]; 3], b: &[[F; 3]; 3]) -> [[F; 3]; 3] {
