@@ -88,7 +88,22 @@ impl Splats {
 
     /// Activated parameters in float type `F` for the rasterizer.
     pub fn gaussians<F: Real>(&self) -> Gaussians<F> {
+        self.gaussians_up_to(self.sh_degree)
+    }
+
+    /// [`Splats::gaussians`] with the SH bands up to `degree` only (at most
+    /// the model's): training raises the degree on a schedule. Copies each
+    /// coefficient once into storage sized up front; per step, a copy of all
+    /// bands cut down afterwards through a growing vector cost two 25 MB
+    /// copies and their reallocations at 130k splats.
+    pub fn gaussians_up_to<F: Real>(&self, degree: usize) -> Gaussians<F> {
         let c = |v: f32| F::c(v as f64);
+        let degree = degree.min(self.sh_degree);
+        let (k, kept) = (self.sh_coefficients(), coefficients(degree));
+        let mut coeffs = Vec::with_capacity(self.len() * kept);
+        for splat in self.sh.chunks_exact(k) {
+            coeffs.extend(splat[..kept].iter().map(|v| v.map(c)));
+        }
         Gaussians {
             means: self.means.iter().map(|m| m.map(c)).collect(),
             scales: self
@@ -102,10 +117,7 @@ impl Splats {
                 .iter()
                 .map(|&o| F::one() / (F::one() + (-c(o)).exp()))
                 .collect(),
-            colors: Colors::Sh {
-                degree: self.sh_degree,
-                coeffs: self.sh.iter().map(|v| v.map(c)).collect(),
-            },
+            colors: Colors::Sh { degree, coeffs },
         }
     }
 }

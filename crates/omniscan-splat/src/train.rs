@@ -27,7 +27,7 @@ use crate::backend::Renderer;
 use crate::backward::backward;
 use crate::gpu::training::{HostState, LossTarget, StepRates};
 use crate::metrics::{ImageView, psnr, weighted_ssim_and_gradient};
-use crate::raster::{Camera, Colors, Gaussians, Settings, project, rasterize};
+use crate::raster::{Camera, Settings, project, rasterize};
 use crate::sh::{C0, coefficients};
 use crate::{SplatError, Splats};
 
@@ -268,19 +268,6 @@ pub fn splats_from_points(
 }
 
 /// Activated parameters with only the first `degree` SH bands in use.
-fn gaussians_at_degree(s: &Splats, degree: usize) -> Gaussians<f32> {
-    let mut g = s.gaussians::<f32>();
-    let k = s.sh_coefficients();
-    let ka = coefficients(degree);
-    g.colors = Colors::Sh {
-        degree,
-        coeffs: (0..s.len())
-            .flat_map(|i| s.sh[i * k..i * k + ka].iter().copied())
-            .collect(),
-    };
-    g
-}
-
 /// One step's loss on a render and its gradient with respect to the
 /// render's colour and alpha (see the module doc), and the masked PSNR.
 pub struct StepLoss {
@@ -541,7 +528,7 @@ pub fn train_resumable(
             let report = gpu.train_step(device, &frame, &target, &rates, t)?;
             progress(step, report.loss, report.psnr);
         } else {
-            let g = gaussians_at_degree(&s, degree);
+            let g = s.gaussians_up_to::<f32>(degree);
             let p = project(&g, &view.camera, &settings);
             let r = rasterize(&p, view.camera.width, view.camera.height, background);
             let (w, h) = (view.camera.width as usize, view.camera.height as usize);
