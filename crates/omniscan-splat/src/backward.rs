@@ -84,9 +84,23 @@ pub fn backward<F: Real>(
     d_rgb: &[[F; 3]],
     d_alpha: &[F],
 ) -> Gradients<F> {
+    let bins = bin_tiles(p, camera.width, camera.height);
+    backward_binned(g, camera, settings, p, &bins, d_rgb, d_alpha)
+}
+
+/// [`backward`] with the forward pass's tile bins.
+pub(crate) fn backward_binned<F: Real>(
+    g: &Gaussians<F>,
+    camera: &Camera<F>,
+    settings: &Settings<F>,
+    p: &Projected<F>,
+    bins: &TileBins<F>,
+    d_rgb: &[[F; 3]],
+    d_alpha: &[F],
+) -> Gradients<F> {
     let n = g.means.len();
     let (width, height) = (camera.width, camera.height);
-    let TileBins { packed, tiles } = bin_tiles(p, width, height);
+    let TileBins { packed, tiles } = bins;
     let tx = width.div_ceil(TILE);
     let per_tile: Vec<TileGrads<F>> = (0..tiles.len())
         .into_par_iter()

@@ -482,7 +482,18 @@ pub fn rasterize<F: Real>(
     height: u32,
     background: [F; 3],
 ) -> Render<F> {
-    let TileBins { packed, tiles } = bin_tiles(p, width, height);
+    rasterize_binned(&bin_tiles(p, width, height), width, height, background)
+}
+
+/// [`rasterize`] with the tile bins given, so that a training step bins
+/// once for its forward and backward passes.
+pub(crate) fn rasterize_binned<F: Real>(
+    bins: &TileBins<F>,
+    width: u32,
+    height: u32,
+    background: [F; 3],
+) -> Render<F> {
+    let TileBins { packed, tiles } = bins;
     let tx = width.div_ceil(TILE);
     let n = (width * height) as usize;
     let tile_out: Vec<(u32, Vec<PixelResult<F>>)> = (0..tiles.len() as u32)

@@ -24,10 +24,10 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
 use crate::backend::Renderer;
-use crate::backward::backward;
+use crate::backward::backward_binned;
 use crate::gpu::training::{HostState, LossTarget, StepRates};
 use crate::metrics::{ImageView, psnr, weighted_ssim_and_gradient};
-use crate::raster::{Camera, Settings, project, rasterize};
+use crate::raster::{Camera, Settings, bin_tiles, project, rasterize, rasterize_binned};
 use crate::sh::{C0, coefficients};
 use crate::{SplatError, Splats};
 
@@ -530,7 +530,9 @@ pub fn train_resumable(
         } else {
             let g = s.gaussians_up_to::<f32>(degree);
             let p = project(&g, &view.camera, &settings);
-            let r = rasterize(&p, view.camera.width, view.camera.height, background);
+            let (width, height) = (view.camera.width, view.camera.height);
+            let bins = bin_tiles(&p, width, height);
+            let r = rasterize_binned(&bins, width, height, background);
             let (w, h) = (view.camera.width as usize, view.camera.height as usize);
             let StepLoss {
                 loss,
@@ -538,7 +540,7 @@ pub fn train_resumable(
                 d_alpha,
                 psnr: image_psnr,
             } = step_loss(view, &r, background, config);
-            let grads = backward(&g, &view.camera, &settings, &p, &d_rgb, &d_alpha);
+            let grads = backward_binned(&g, &view.camera, &settings, &p, &bins, &d_rgb, &d_alpha);
             let visible: Vec<bool> = (0..s.len()).map(|i| p.visible(i)).collect();
             // Screen-space gradient statistics for densification (gsplat scales by half the image size).
             for i in 0..s.len() {
