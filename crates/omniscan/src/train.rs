@@ -216,7 +216,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
 
 #[derive(clap::Args)]
 pub struct EvalArgs {
-    /// The splat model (3DGS PLY).
+    /// The splat model (3DGS PLY), or a training checkpoint (MODEL.ply.checkpoint.safetensors) to evaluate a run in progress.
     pub model: PathBuf,
     /// The capture whose views to compare against (or a photo set's cameras.json).
     pub capture: PathBuf,
@@ -225,6 +225,9 @@ pub struct EvalArgs {
     /// Shrink images by this integer factor before comparing.
     #[arg(long, default_value_t = 1)]
     pub downscale: u32,
+    /// Compare only the views that training with this --hold-out-every held out (the n-th, the 2n-th, ...); 0: every view.
+    #[arg(long, default_value_t = 0)]
+    pub held_out_every: usize,
     /// An LPIPS network exported to ONNX (two [1,3,H,W] inputs in [-1,1], one distance out) for the `lpips` metrics; needs ONNX Runtime (--onnx-runtime or ORT_DYLIB_PATH).
     #[arg(long)]
     pub lpips: Option<PathBuf>,
@@ -271,8 +274,18 @@ fn load_views(
 /// `omniscan eval`: PSNR/SSIM of a model against a capture's images, whole
 /// and masked (object ∩ accumulation, gripper excluded).
 pub fn eval(args: EvalArgs) -> Result<()> {
-    let model = omniscan_splat::ply::read_splats(&args.model)?;
+    let is_checkpoint = args.model.extension().is_some_and(|e| e == "safetensors");
+    let (model, checkpoint_step) = if is_checkpoint {
+        let state = omniscan_splat::checkpoint::load(&args.model)?;
+        (state.splats, Some(state.step))
+    } else {
+        (omniscan_splat::ply::read_splats(&args.model)?, None)
+    };
     let views = load_views(&args.capture, args.arm, args.downscale)?;
+    let views = match args.held_out_every {
+        0 => views,
+        every => split_held_out(views, every).1,
+    };
     if let Some(dir) = &args.renders {
         let g = model.gaussians::<f32>();
         let settings = omniscan_splat::raster::Settings {
@@ -305,7 +318,10 @@ pub fn eval(args: EvalArgs) -> Result<()> {
         }
     }
     let lpips = load_lpips(&args.lpips, args.onnx_runtime.as_deref())?;
-    let report = omniscan_splat::train::evaluate(&model, &views, lpips.as_ref())?;
+    let mut report = omniscan_splat::train::evaluate(&model, &views, lpips.as_ref())?;
+    if let Some(step) = checkpoint_step {
+        report["checkpoint_step"] = json!(step);
+    }
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {

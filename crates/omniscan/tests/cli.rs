@@ -441,6 +441,33 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
         assert!(eval[key].as_f64().is_some(), "{key} missing: {eval}");
     }
     assert_eq!(eval["views"], 24);
+    // Only the views training held out: the figures training reported.
+    let out = omniscan(&[
+        "eval",
+        model.to_str().unwrap(),
+        capture.to_str().unwrap(),
+        "--held-out-every",
+        "8",
+        "--json",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let held_out: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(held_out["views"], 3);
+    for key in ["psnr", "psnr_masked", "ssim_masked"] {
+        assert_eq!(
+            held_out[key], long["test"][key],
+            "{key}: {held_out} vs {long}"
+        );
+    }
+    // A run in progress is evaluated from its checkpoint; a missing one is named.
+    let missing = tmp.path().join("run.ply.checkpoint.safetensors");
+    let out = omniscan(&["eval", missing.to_str().unwrap(), capture.to_str().unwrap()]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("run.ply.checkpoint.safetensors"));
     // The model is a valid 3DGS file that renders.
     let renders = tmp.path().join("renders");
     let out = omniscan(&[
