@@ -25,7 +25,7 @@ use rayon::prelude::*;
 use crate::Real;
 use crate::raster::{
     Camera, Colors, Gaussians, LANES, Mode, Packed, Projected, Settings, SubTiles, TILE, TileBins,
-    ViewGeometry, bin_tiles, composite_lanes, covariance, lane_pixel, quat_to_rotmat,
+    ViewGeometry, bin_tiles, composite_lanes, covariance, lane_centres, lane_pixel, quat_to_rotmat,
 };
 use crate::sh;
 
@@ -126,6 +126,7 @@ pub(crate) fn backward_binned<F: Real>(
                     continue;
                 };
                 let (x0, x1, y0, y1) = pixels;
+                let (centres_x, centres_y) = lane_centres::<F>(x0, y0);
                 contributors.iter_mut().for_each(Vec::clear);
                 let t_final = composite_lanes(
                     local,
@@ -146,7 +147,7 @@ pub(crate) fn backward_binned<F: Real>(
                     if px >= x1 || py >= y1 {
                         continue;
                     }
-                    let (fx, fy) = (F::c(px as f64 + 0.5), F::c(py as f64 + 0.5));
+                    let (fx, fy) = (centres_x[k], centres_y[k]);
                     let pix = (py * width + px) as usize;
                     let dc = d_rgb[pix];
                     let da = d_alpha[pix];
