@@ -18,6 +18,7 @@ pub mod backward;
 pub mod checkpoint;
 pub mod gpu;
 pub mod lpips;
+pub mod mcmc;
 pub mod metrics;
 pub mod model;
 pub mod orbit;

@@ -25,7 +25,7 @@ use rayon::prelude::*;
 
 use crate::backend::Renderer;
 use crate::backward::backward_binned;
-use crate::gpu::training::{HostState, LossTarget, StepRates};
+use crate::gpu::training::{HostState, LossTarget, McmcStep, StepRates};
 use crate::metrics::{ImageView, psnr, weighted_ssim_and_gradient};
 use crate::raster::{Camera, Settings, bin_tiles, project, rasterize, rasterize_binned};
 use crate::sh::{C0, coefficients};
@@ -60,6 +60,23 @@ pub struct TrainConfig {
     pub reset_every: usize,
     pub max_splats: usize,
     pub initial_points: usize,
+    pub densification: Densification,
+    /// Position learning rate per unit of scene extent at the start (it
+    /// decays to 1% over the run); gsplat's 1.6e-4.
+    pub position_lr: f32,
+}
+
+/// How splats are added and removed during training.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Densification {
+    /// gsplat's default strategy: clone, split, prune, periodic opacity
+    /// resets, between `densify_from` and `densify_until`.
+    Adaptive,
+    /// 3DGS as Markov chain Monte Carlo ([`crate::mcmc`]): relocation of
+    /// dead splats, 5% growth per refinement up to `max_splats`, opacity and
+    /// scale penalties, noise on near-transparent splats. A fresh start
+    /// sets every splat to opacity 0.5 and a tenth of its size.
+    Mcmc,
 }
 
 impl TrainConfig {
@@ -78,6 +95,18 @@ impl TrainConfig {
             reset_every: 3000,
             max_splats: 200_000,
             initial_points: 5000,
+            densification: Densification::Adaptive,
+            position_lr: 1.6e-4,
+        }
+    }
+
+    /// MCMC densification with gsplat's schedule: refinements from step
+    /// 500 until five sixths of the run.
+    pub fn mcmc(steps: usize) -> TrainConfig {
+        TrainConfig {
+            densify_until: steps * 5 / 6,
+            densification: Densification::Mcmc,
+            ..TrainConfig::with_steps(steps)
         }
     }
 }
@@ -134,6 +163,15 @@ impl Adam {
         };
         self.m = pick(&self.m);
         self.v = pick(&self.v);
+    }
+    /// Grows to `len` elements of `stride` and zeroes the moments of `indices`.
+    fn reset(&mut self, indices: &[usize], stride: usize, len: usize) {
+        self.m.resize(len * stride, 0.0);
+        self.v.resize(len * stride, 0.0);
+        for &i in indices {
+            self.m[i * stride..(i + 1) * stride].fill(0.0);
+            self.v[i * stride..(i + 1) * stride].fill(0.0);
+        }
     }
 }
 
@@ -414,8 +452,11 @@ pub fn train_resumable(
     let print = fingerprint(config, views.len());
     let (mut s, first_step, extent, mut adam, mut grad2d_sum, mut grad2d_count, mut order) =
         match start {
-            Start::Fresh(s) => {
+            Start::Fresh(mut s) => {
                 s.validate()?;
+                if config.densification == Densification::Mcmc {
+                    crate::mcmc::prepare(&mut s);
+                }
                 // Scene extent: the splats' spread around their centre.
                 let extent = {
                     let n = s.len().max(1) as f32;
@@ -506,7 +547,7 @@ pub fn train_resumable(
         };
         let t = step as i32;
         let progress_fraction = step as f32 / config.steps as f32;
-        let means_lr = 1.6e-4 * extent * 0.01f32.powf(progress_fraction);
+        let means_lr = config.position_lr * extent * 0.01f32.powf(progress_fraction);
         if let (Renderer::Gpu(gpu), Some(device)) = (renderer, device_state.as_ref()) {
             let frame = gpu.forward_state(device, &view.camera, &settings, degree, false)?;
             let rates = StepRates {
@@ -516,6 +557,17 @@ pub fn train_resumable(
                 opacities: 5e-2,
                 sh_dc: 2.5e-3,
                 sh_rest: 2.5e-3 / 20.0,
+                mcmc: (config.densification == Densification::Mcmc).then(|| {
+                    let (opacity_penalty, scale_penalty) =
+                        crate::mcmc::penalty_weights(s.len(), extent);
+                    McmcStep {
+                        opacity_penalty,
+                        scale_penalty,
+                        noise_scale: crate::mcmc::noise_scale(means_lr, extent),
+                        seed: crate::mcmc::noise_seed(config.seed),
+                        step: step as u32,
+                    }
+                }),
             };
             let target = LossTarget {
                 image: &view.image,
@@ -541,10 +593,10 @@ pub fn train_resumable(
                 psnr: image_psnr,
             } = step_loss(view, &r, background, config);
             let grads = backward_binned(&g, &view.camera, &settings, &p, &bins, &d_rgb, &d_alpha);
-            let visible: Vec<bool> = (0..s.len()).map(|i| p.visible(i)).collect();
+            let mcmc = config.densification == Densification::Mcmc;
             // Screen-space gradient statistics for densification (gsplat scales by half the image size).
             for i in 0..s.len() {
-                if visible[i] {
+                if !mcmc && p.visible(i) {
                     let gx = grads.means2d[i][0] * w as f32 * 0.5;
                     let gy = grads.means2d[i][1] * h as f32 * 0.5;
                     grad2d_sum[i] += (gx * gx + gy * gy).sqrt();
@@ -558,9 +610,19 @@ pub fn train_resumable(
                 means_lr,
                 t,
             );
+            let mut log_scale_grads = grads.log_scales(&g);
+            let mut opacity_grads = grads.opacity_logits(&g);
+            if mcmc {
+                crate::mcmc::add_regularisation(
+                    &s,
+                    extent,
+                    &mut opacity_grads,
+                    &mut log_scale_grads,
+                );
+            }
             adam[1].step(
                 s.log_scales.as_flattened_mut(),
-                grads.log_scales(&g).as_flattened(),
+                log_scale_grads.as_flattened(),
                 5e-3,
                 t,
             );
@@ -570,7 +632,7 @@ pub fn train_resumable(
                 1e-3,
                 t,
             );
-            adam[3].step(&mut s.opacity_logits, &grads.opacity_logits(&g), 5e-2, t);
+            adam[3].step(&mut s.opacity_logits, &opacity_grads, 5e-2, t);
             // Bands above the current degree get zero gradients (their moments still decay).
             let ka = coefficients(degree);
             let sh_grad: Vec<[f32; 3]> = if ka == k {
@@ -598,14 +660,19 @@ pub fn train_resumable(
                 },
                 t,
             );
+            if mcmc {
+                crate::mcmc::add_noise(&mut s, config.seed, step, means_lr, extent);
+            }
             progress(step, loss, image_psnr);
         }
 
         // Densify and prune (on the host: a resident state comes back first).
         let in_window = step >= config.densify_from && step <= config.densify_until;
         let densify_now = in_window && step % config.densify_every == 0;
-        let reset_now =
-            config.reset_every > 0 && step % config.reset_every == 0 && step < config.densify_until;
+        let reset_now = config.densification == Densification::Adaptive
+            && config.reset_every > 0
+            && step % config.reset_every == 0
+            && step < config.densify_until;
         let checkpoint_now = checkpoints
             .as_ref()
             .is_some_and(|c| c.every > 0 && step % c.every == 0 && step < config.steps);
@@ -618,7 +685,16 @@ pub fn train_resumable(
             grad2d_sum = host.grad_sum;
             grad2d_count = host.grad_count;
         }
-        if densify_now {
+        if densify_now && config.densification == Densification::Mcmc {
+            let strides = [3, 3, 4, 1, k * 3];
+            crate::mcmc::refine(&mut s, config.max_splats, &mut rng, &mut |changed, len| {
+                for (a, stride) in adam.iter_mut().zip(strides) {
+                    a.reset(changed, stride, len);
+                }
+            });
+            grad2d_sum = vec![0.0; s.len()];
+            grad2d_count = vec![0; s.len()];
+        } else if densify_now {
             densify(
                 &mut s,
                 &mut adam,
@@ -767,13 +843,20 @@ fn densify(
 
 /// Splits views into training and held-out ones: every `every`-th view is
 /// held out, counting from one (views 7, 15, 23… for 8); 0 holds out
-/// nothing. (3DGS and gsplat hold out 0, 8, 16…; on a small simulated
+/// nothing. (3DGS and gsplat hold out 0, 8, 16…, which
+/// [`split_held_out_from`] with `first` 0 gives; on a small simulated
 /// capture those views came out worse after 300 steps than after 10, which
 /// is still to be understood, so the figures here keep their own split.)
 pub fn split_held_out<T>(views: Vec<T>, every: usize) -> (Vec<T>, Vec<T>) {
+    split_held_out_from(views, every, every.saturating_sub(1))
+}
+
+/// Holds out views `first`, `first + every`, `first + 2·every`, … (`first`
+/// is taken modulo `every`); `every` 0 holds out nothing.
+pub fn split_held_out_from<T>(views: Vec<T>, every: usize, first: usize) -> (Vec<T>, Vec<T>) {
     let (mut train, mut held_out) = (Vec::new(), Vec::new());
     for (i, v) in views.into_iter().enumerate() {
-        if every > 0 && i % every == every - 1 {
+        if every > 0 && i % every == first % every {
             held_out.push(v);
         } else {
             train.push(v);
@@ -906,6 +989,8 @@ pub fn evaluate(
     let (mut p_all, mut s_all, mut p_mask, mut s_mask) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let (mut l_all, mut l_mask) = (Vec::new(), Vec::new());
+    // Each view's own figures, so a user can see which views pull the mean down.
+    let mut per_view = Vec::with_capacity(views.len());
     for v in views {
         let p = project(&g, &v.camera, &settings);
         let r = rasterize(&p, v.camera.width, v.camera.height, [0.0; 3]);
@@ -929,18 +1014,24 @@ pub fn evaluate(
         let mask: Vec<bool> = (0..w * h)
             .map(|i| v.object[i] >= 0.5 && r.alpha[i] >= 0.5 && v.gripper[i] < 0.5)
             .collect();
-        if let Some(x) = psnr(&a, &b, None) {
-            p_all.push(x);
+        let figures = [
+            psnr(&a, &b, None),
+            ssim(&a, &b, None),
+            psnr(&a, &b, Some(&mask)),
+            ssim(&a, &b, Some(&mask)),
+        ];
+        for (list, x) in [&mut p_all, &mut s_all, &mut p_mask, &mut s_mask]
+            .into_iter()
+            .zip(figures)
+        {
+            list.extend(x);
         }
-        if let Some(x) = ssim(&a, &b, None) {
-            s_all.push(x);
-        }
-        if let Some(x) = psnr(&a, &b, Some(&mask)) {
-            p_mask.push(x);
-        }
-        if let Some(x) = ssim(&a, &b, Some(&mask)) {
-            s_mask.push(x);
-        }
+        per_view.push(serde_json::json!({
+            "psnr": figures[0],
+            "ssim": figures[1],
+            "psnr_masked": figures[2],
+            "ssim_masked": figures[3],
+        }));
         if let Some(net) = lpips {
             l_all.push(net.distance(&r.rgb, &target, w, h, None)?);
             if mask.iter().any(|&m| m) {
@@ -963,6 +1054,7 @@ pub fn evaluate(
         "ssim_masked": mean(&s_mask),
         "lpips": mean(&l_all),
         "lpips_masked": mean(&l_mask),
+        "per_view": per_view,
     });
     if lpips.is_none() {
         report["lpips_note"] =
@@ -1099,6 +1191,10 @@ mod tests {
         assert!(train.contains(&0) && !train.contains(&7));
         let (train, held_out) = split_held_out((0..5).collect::<Vec<usize>>(), 0);
         assert_eq!((train.len(), held_out.len()), (5, 0));
+        // The 3DGS and gsplat split.
+        let (train, held_out) = split_held_out_from((0..17).collect(), 8, 0);
+        assert_eq!(held_out, vec![0, 8, 16]);
+        assert_eq!(train.len(), 14);
     }
 
     /// Four 48x36 views of a random scene, and a different scene to start from.
@@ -1169,6 +1265,12 @@ mod tests {
 
     #[test]
     fn a_resumed_run_ends_with_the_model_of_an_uninterrupted_one() {
+        for densification in [Densification::Adaptive, Densification::Mcmc] {
+            resumes_exactly(densification);
+        }
+    }
+
+    fn resumes_exactly(densification: Densification) {
         let (views, start) = problem();
         let config = TrainConfig {
             densify_from: 5,
@@ -1176,6 +1278,7 @@ mod tests {
             densify_until: 20,
             sh_interval: 8,
             reset_every: 15,
+            densification,
             ..TrainConfig::with_steps(24)
         };
         let straight = train(
@@ -1237,5 +1340,53 @@ mod tests {
         )
         .unwrap_err();
         assert!(err.to_string().contains("other settings"), "{err}");
+    }
+
+    /// MCMC training fits the views (its error falls well below the start's)
+    /// and the count grows by 5% per refinement up to the cap.
+    #[test]
+    fn mcmc_fits_and_grows_to_its_cap() {
+        let (views, start) = problem();
+        let config = TrainConfig {
+            densify_from: 20,
+            densify_every: 20,
+            max_splats: 140,
+            ..TrainConfig::mcmc(300)
+        };
+        let error = |s: &Splats| -> f32 {
+            let g = s.gaussians::<f32>();
+            views
+                .iter()
+                .map(|v| {
+                    let (_, r) = crate::raster::render(&g, &v.camera, &Settings::default());
+                    r.rgb
+                        .iter()
+                        .zip(&v.image)
+                        .map(|(a, b)| (0..3).map(|c| (a[c] - b[c]).abs()).sum::<f32>())
+                        .sum::<f32>()
+                })
+                .sum()
+        };
+        let model = train(
+            &views,
+            start.clone(),
+            &config,
+            &Renderer::Cpu,
+            &mut |_, _, _| {},
+        )
+        .unwrap();
+        assert_eq!(
+            model.len(),
+            140,
+            "120 grows by 6, 6, 6 and is capped at 140"
+        );
+        // MCMC starts from half-opaque splats a tenth of their size.
+        let mut prepared = start.clone();
+        crate::mcmc::prepare(&mut prepared);
+        let (before, after) = (error(&prepared), error(&model));
+        assert!(
+            after < 0.6 * before && after < error(&start),
+            "L1 error {before} -> {after}"
+        );
     }
 }

@@ -346,45 +346,157 @@ fn training_on_the_gpu_follows_the_cpu_reference() {
         sh: coeffs.clone(),
         antialiased: false,
     };
-    let config = TrainConfig {
+    let adaptive = TrainConfig {
         densify_from: 10,
         densify_every: 10,
         densify_until: 20,
         sh_interval: 10,
         ..TrainConfig::with_steps(30)
     };
-    let mut cpu_losses = Vec::new();
-    let cpu = train(
-        &views,
-        splats.clone(),
-        &config,
-        &Renderer::Cpu,
-        &mut |_, loss, _| cpu_losses.push(loss),
-    )
-    .unwrap();
-    let mut gpu_losses = Vec::new();
-    let gpu_renderer = Renderer::Gpu(Box::new(renderer()));
-    let gpu = train(&views, splats, &config, &gpu_renderer, &mut |_, loss, _| {
-        gpu_losses.push(loss)
-    })
-    .unwrap();
-    assert_eq!(
-        cpu.len(),
-        gpu.len(),
-        "densification took the same decisions"
-    );
-    for (step, (a, b)) in cpu_losses.iter().zip(&gpu_losses).enumerate() {
-        assert!(
-            (a - b).abs() <= 1e-3 * a.abs().max(1e-3),
-            "step {step}: loss {a} on the CPU, {b} on the GPU"
+    // MCMC: penalties in Adam, the noise kernel, relocation and growth on the host.
+    let mcmc = TrainConfig {
+        densify_from: 10,
+        densify_every: 10,
+        densify_until: 25,
+        sh_interval: 10,
+        max_splats: 320,
+        ..TrainConfig::mcmc(30)
+    };
+    for config in [adaptive, mcmc] {
+        let mut cpu_losses = Vec::new();
+        let cpu = train(
+            &views,
+            splats.clone(),
+            &config,
+            &Renderer::Cpu,
+            &mut |_, loss, _| cpu_losses.push(loss),
+        )
+        .unwrap();
+        let mut gpu_losses = Vec::new();
+        let gpu_renderer = Renderer::Gpu(Box::new(renderer()));
+        let gpu = train(
+            &views,
+            splats.clone(),
+            &config,
+            &gpu_renderer,
+            &mut |_, loss, _| gpu_losses.push(loss),
+        )
+        .unwrap();
+        assert_eq!(
+            cpu.len(),
+            gpu.len(),
+            "{:?}: densification took the same decisions",
+            config.densification
         );
+        for (step, (a, b)) in cpu_losses.iter().zip(&gpu_losses).enumerate() {
+            assert!(
+                (a - b).abs() <= 1e-3 * a.abs().max(1e-3),
+                "{:?} step {step}: loss {a} on the CPU, {b} on the GPU",
+                config.densification
+            );
+        }
+        let worst = cpu
+            .means
+            .iter()
+            .flatten()
+            .zip(gpu.means.iter().flatten())
+            .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+        assert!(worst < 1e-3, "means drifted apart by {worst}");
+        assert!(cpu_losses.last() < cpu_losses.first(), "the loss falls");
     }
-    let worst = cpu
-        .means
-        .iter()
-        .flatten()
-        .zip(gpu.means.iter().flatten())
-        .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
-    assert!(worst < 1e-3, "means drifted apart by {worst}");
-    assert!(cpu_losses.last() < cpu_losses.first(), "the loss falls");
+}
+
+/// MCMC's position noise: the device's kernel draws the same normals from
+/// the same hash as the CPU's `mcmc::add_noise`, and moves the same splats
+/// (opacities from 0.0005 to 0.02 span the gate from open to shut).
+#[test]
+#[ignore = "needs a Vulkan device (lavapipe: apt-get install mesa-vulkan-drivers)"]
+fn mcmc_noise_on_the_gpu_matches_the_cpu() {
+    use omniscan_splat::Splats;
+    use omniscan_splat::gpu::training::{HostState, LossTarget, McmcStep, StepRates};
+    use omniscan_splat::mcmc;
+    let g = scene(300, Some(1), 41);
+    let Colors::Sh { coeffs, .. } = &g.colors else {
+        panic!("SH scene")
+    };
+    let n = g.means.len();
+    let splats = Splats {
+        means: g.means.clone(),
+        log_scales: g.scales.iter().map(|s| s.map(f32::ln)).collect(),
+        quats: g.quats.clone(),
+        opacity_logits: (0..n)
+            .map(|i| {
+                let o = 0.0005 + 0.1995 * i as f32 / n as f32;
+                (o / (1.0 - o)).ln()
+            })
+            .collect(),
+        sh_degree: 1,
+        sh: coeffs.clone(),
+        antialiased: false,
+    };
+    let gpu = renderer();
+    let k = splats.sh_coefficients();
+    let state = gpu
+        .upload_state(&HostState {
+            moments: [3 * n, 3 * n, 4 * n, n, 3 * k * n]
+                .map(|len| (vec![0.0; len], vec![0.0; len])),
+            grad_sum: vec![0.0; n],
+            grad_count: vec![0; n],
+            splats: splats.clone(),
+        })
+        .unwrap();
+    let cam = camera(64, 48);
+    let pixels = (cam.width * cam.height) as usize;
+    let settings = Settings::default();
+    let frame = gpu
+        .forward_state(&state, &cam, &settings, 1, false)
+        .unwrap();
+    let (seed, step, rate, extent) = (7u64, 12usize, 1.6e-4f32, 0.5f32);
+    // Every learning rate zero: Adam leaves the values as they are, and the noise alone moves the means.
+    let rates = StepRates {
+        means: 0.0,
+        log_scales: 0.0,
+        quats: 0.0,
+        opacities: 0.0,
+        sh_dc: 0.0,
+        sh_rest: 0.0,
+        mcmc: Some(McmcStep {
+            opacity_penalty: 0.0,
+            scale_penalty: 0.0,
+            noise_scale: mcmc::noise_scale(rate, extent),
+            seed: mcmc::noise_seed(seed),
+            step: step as u32,
+        }),
+    };
+    let image = vec![[0.5f32; 3]; pixels];
+    let (object, gripper) = (vec![1.0f32; pixels], vec![0.0f32; pixels]);
+    let target = LossTarget {
+        image: &image,
+        object: &object,
+        gripper: &gripper,
+        background: [0.0; 3],
+        lambda_ssim: 0.2,
+        lambda_opacity: 1.0,
+    };
+    gpu.train_step(&state, &frame, &target, &rates, 1).unwrap();
+    let moved = gpu.download_state(&state).unwrap().splats.means;
+    let mut cpu = splats.clone();
+    mcmc::add_noise(&mut cpu, seed, step, rate, extent);
+    let mut largest = 0f32;
+    for (i, (a, b)) in cpu.means.iter().zip(&moved).enumerate() {
+        for c in 0..3 {
+            let shift = (a[c] - splats.means[i][c]).abs();
+            largest = largest.max(shift);
+            assert!(
+                (a[c] - b[c]).abs() <= 1e-4 * shift.max(1e-3) + 1e-7,
+                "splat {i}: {a:?} on the CPU, {b:?} on the GPU (from {:?})",
+                splats.means[i]
+            );
+        }
+    }
+    assert!(largest > 1e-4, "the noise moved something: {largest}");
+    let last = (0..3)
+        .map(|c| (cpu.means[n - 1][c] - splats.means[n - 1][c]).abs())
+        .fold(0f32, f32::max);
+    assert!(last < 1e-6 * largest, "an opaque splat stays: {last}");
 }

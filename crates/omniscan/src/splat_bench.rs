@@ -219,6 +219,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                     opacities: 5e-2,
                     sh_dc: 2.5e-3,
                     sh_rest: 1.25e-4,
+                    mcmc: None,
                 };
                 let target = omniscan_splat::gpu::training::LossTarget {
                     image: &view.image,

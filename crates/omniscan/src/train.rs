@@ -11,8 +11,8 @@ use omniscan_core::capture::{Arm, Capture};
 use omniscan_core::poses::ViewSet;
 use omniscan_splat::ply::write_splats;
 use omniscan_splat::train::{
-    Checkpoints, Start, TrainConfig, initial_splats, splats_from_points, split_held_out, train,
-    train_resumable, views_from_capture,
+    Checkpoints, Start, TrainConfig, initial_splats, splats_from_points, split_held_out,
+    split_held_out_from, train, train_resumable, views_from_capture,
 };
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -34,6 +34,12 @@ impl ArmSet {
     }
 }
 
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum DensificationArg {
+    Adaptive,
+    Mcmc,
+}
+
 #[derive(clap::Args)]
 pub struct TrainArgs {
     /// The capture directory, or a calibrated photo set's cameras.json (file_path, mask_path, fl_x, fl_y, cx, cy, camera_to_world_opencv per frame).
@@ -51,10 +57,22 @@ pub struct TrainArgs {
     /// Every n-th view (the n-th, the 2n-th, ...) is held out from training and used for evaluation; 0 holds out none.
     #[arg(long, default_value_t = 8)]
     pub hold_out_every: usize,
+    /// The first held-out view's index (default: n-1, so views n-1, 2n-1, ...); 0 gives the 3DGS and gsplat split (views 0, n, 2n, ...).
+    #[arg(long)]
+    pub hold_out_first: Option<usize>,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     #[arg(long, default_value_t = 3)]
     pub sh_degree: usize,
+    /// How splats are added and removed: gsplat's default strategy (clone, split, prune, opacity resets) or MCMC (relocation, 5% growth per refinement up to --max-splats, opacity and scale penalties, noise on near-transparent splats).
+    #[arg(long, value_enum, default_value = "adaptive")]
+    pub densification: DensificationArg,
+    /// Position learning rate per unit of scene extent (the splats' spread at the start), decayed to 1% over the run.
+    #[arg(long, default_value_t = 1.6e-4)]
+    pub position_lr: f32,
+    /// Densification stops adding splats at this many.
+    #[arg(long, default_value_t = 200_000)]
+    pub max_splats: usize,
     /// Initial splats from the visual hull of the masks (without --init).
     #[arg(long, default_value_t = 5000)]
     pub initial_points: usize,
@@ -85,12 +103,22 @@ pub fn run(args: TrainArgs) -> Result<()> {
         bail!("--sh-degree must be 0-3");
     }
     let all = load_views(&args.capture, args.arm, args.downscale)?;
-    let (train_views, test_views) = split_held_out(all, args.hold_out_every);
+    let (train_views, test_views) = split_held_out_from(
+        all,
+        args.hold_out_every,
+        args.hold_out_first
+            .unwrap_or(args.hold_out_every.saturating_sub(1)),
+    );
     let start = Instant::now();
     let config = TrainConfig {
         seed: args.seed,
         max_sh_degree: args.sh_degree,
-        ..TrainConfig::with_steps(args.steps)
+        max_splats: args.max_splats,
+        position_lr: args.position_lr,
+        ..match args.densification {
+            DensificationArg::Adaptive => TrainConfig::with_steps(args.steps),
+            DensificationArg::Mcmc => TrainConfig::mcmc(args.steps),
+        }
     };
     let bar = indicatif::ProgressBar::new(args.steps as u64);
     bar.set_style(
@@ -228,6 +256,9 @@ pub struct EvalArgs {
     /// Compare only the views that training with this --hold-out-every held out (the n-th, the 2n-th, ...); 0: every view.
     #[arg(long, default_value_t = 0)]
     pub held_out_every: usize,
+    /// The first held-out view's index, as training's --hold-out-first (default: n-1).
+    #[arg(long)]
+    pub held_out_first: Option<usize>,
     /// An LPIPS network exported to ONNX (two [1,3,H,W] inputs in [-1,1], one distance out) for the `lpips` metrics; needs ONNX Runtime (--onnx-runtime or ORT_DYLIB_PATH).
     #[arg(long)]
     pub lpips: Option<PathBuf>,
@@ -282,9 +313,14 @@ pub fn eval(args: EvalArgs) -> Result<()> {
         (omniscan_splat::ply::read_splats(&args.model)?, None)
     };
     let views = load_views(&args.capture, args.arm, args.downscale)?;
-    let views = match args.held_out_every {
-        0 => views,
-        every => split_held_out(views, every).1,
+    // Each compared view's index in the capture, for the per-view figures.
+    let first = args
+        .held_out_first
+        .unwrap_or(args.held_out_every.saturating_sub(1));
+    let indices = split_held_out_from((0..views.len()).collect(), args.held_out_every, first);
+    let (indices, views) = match args.held_out_every {
+        0 => (indices.0, views),
+        every => (indices.1, split_held_out_from(views, every, first).1),
     };
     if let Some(dir) = &args.renders {
         let g = model.gaussians::<f32>();
@@ -321,6 +357,11 @@ pub fn eval(args: EvalArgs) -> Result<()> {
     let mut report = omniscan_splat::train::evaluate(&model, &views, lpips.as_ref())?;
     if let Some(step) = checkpoint_step {
         report["checkpoint_step"] = json!(step);
+    }
+    if let Some(per_view) = report["per_view"].as_array_mut() {
+        for (figures, index) in per_view.iter_mut().zip(indices) {
+            figures["view"] = json!(index);
+        }
     }
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);

@@ -417,6 +417,38 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
         from_points["splats"].as_u64().unwrap() > 100,
         "{from_points}"
     );
+    // MCMC densification (one refinement in 200 steps, at step 100: 1000
+    // splats would grow to 1050, the cap stops them at 1030), and the 3DGS
+    // split (views 0, 8, 16 held out).
+    let out = omniscan(&[
+        "train",
+        capture.to_str().unwrap(),
+        "--out",
+        model.to_str().unwrap(),
+        "--sh-degree",
+        "0",
+        "--backend",
+        "cpu",
+        "--json",
+        "--densification",
+        "mcmc",
+        "--steps",
+        "200",
+        "--initial-points",
+        "1000",
+        "--max-splats",
+        "1030",
+        "--hold-out-first",
+        "0",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let mcmc: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(mcmc["test_views"], 3, "{mcmc}");
+    assert_eq!(mcmc["splats"], 1030, "{mcmc}");
     let out = train_more(&["--init", tmp.path().join("none.ply").to_str().unwrap()]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("none.ply"));
@@ -463,6 +495,19 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
             "{key}: {held_out} vs {long}"
         );
     }
+    // Each view's own figures, named by their index in the capture.
+    let per_view = held_out["per_view"].as_array().unwrap();
+    let indices: Vec<u64> = per_view
+        .iter()
+        .map(|v| v["view"].as_u64().unwrap())
+        .collect();
+    assert_eq!(indices, [7, 15, 23]);
+    let mean = per_view
+        .iter()
+        .map(|v| v["psnr_masked"].as_f64().unwrap())
+        .sum::<f64>()
+        / 3.0;
+    assert!((mean - held_out["psnr_masked"].as_f64().unwrap()).abs() < 1e-9);
     // A run in progress is evaluated from its checkpoint; a missing one is named.
     let missing = tmp.path().join("run.ply.checkpoint.safetensors");
     let out = omniscan(&["eval", missing.to_str().unwrap(), capture.to_str().unwrap()]);

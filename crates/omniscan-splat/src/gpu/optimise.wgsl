@@ -22,7 +22,9 @@ struct Params {
     one_minus_beta1: f32,
     one_minus_beta2: f32,
     epsilon: f32,
-    _pad2: f32,
+    // MCMC's penalty weight on the activated value (scale or opacity),
+    // added to its gradient; 0 without MCMC.
+    penalty: f32,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -79,10 +81,11 @@ fn adam(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     var g = grads[i];
     var lr = params.lr;
     if (params.kind == 1u) {
-        g = g * exp(x);
+        let scale = exp(x);
+        g = g * scale + params.penalty * scale;
     } else if (params.kind == 2u) {
         let o = 1.0 / (1.0 + exp(-x));
-        g = g * o * (1.0 - o);
+        g = g * o * (1.0 - o) + params.penalty * (o * (1.0 - o));
     } else if (params.kind == 3u && (i / 3u) % params.stride != 0u) {
         lr = params.lr_rest;
     }
@@ -91,4 +94,58 @@ fn adam(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     first[i] = m;
     second[i] = v;
     values[i] = x - lr * (m / params.bias1) / (sqrt(v / params.bias2) + params.epsilon);
+}
+
+// ---- MCMC noise on near-transparent splats (mcmc.rs's `add_noise`) ---------
+// Uses `len`, `kind` as the seed, `stride` as the step and `lr` as the noise
+// scale; the means are bound as `values`.
+@group(0) @binding(12) var<storage, read> quats: array<f32>;
+
+fn pcg_hash(x: u32) -> u32 {
+    let state = x * 747796405u + 2891336453u;
+    let word = ((state >> ((state >> 28u) + 4u)) ^ state) * 277803737u;
+    return (word >> 22u) ^ word;
+}
+
+@compute @workgroup_size(256)
+fn noise(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let i = flat_index(gid, groups);
+    if (i >= params.len) {
+        return;
+    }
+    let opacity = 1.0 / (1.0 + exp(-logits[i]));
+    let gate = 1.0 / (1.0 + exp(-(100.0 * (0.005 - opacity))));
+    if (gate * params.lr == 0.0) {
+        return;
+    }
+    let base = pcg_hash(params.kind ^ pcg_hash(params.stride ^ pcg_hash(i)));
+    var u: array<f32, 4>;
+    for (var j = 0u; j < 4u; j++) {
+        let h = pcg_hash(base + j * 0x9e3779b9u);
+        u[j] = (f32(h >> 8u) + 1.0) / 16777216.0;
+    }
+    let radius = vec2<f32>(sqrt(-2.0 * log(u[0])), sqrt(-2.0 * log(u[2])));
+    let angle = vec2<f32>(6.2831855 * u[1], 6.2831855 * u[3]);
+    let z = vec3<f32>(radius.x * cos(angle.x), radius.x * sin(angle.x), radius.y * cos(angle.y));
+    var q = vec4<f32>(quats[4u * i], quats[4u * i + 1u], quats[4u * i + 2u], quats[4u * i + 3u]);
+    q = q / sqrt(dot(q, q));
+    let w = q.x;
+    let x = q.y;
+    let y = q.z;
+    let k = q.w;
+    // Rows of R, as raster.rs's quat_to_rotmat.
+    let r0 = vec3<f32>(1.0 - 2.0 * (y * y + k * k), 2.0 * (x * y - w * k), 2.0 * (x * k + w * y));
+    let r1 = vec3<f32>(2.0 * (x * y + w * k), 1.0 - 2.0 * (x * x + k * k), 2.0 * (y * k - w * x));
+    let r2 = vec3<f32>(2.0 * (x * k - w * y), 2.0 * (y * k + w * x), 1.0 - 2.0 * (x * x + y * y));
+    let variance = vec3<f32>(
+        exp(2.0 * log_scales[3u * i]),
+        exp(2.0 * log_scales[3u * i + 1u]),
+        exp(2.0 * log_scales[3u * i + 2u]),
+    );
+    // Σz = R·S²·Rᵀ·z.
+    let local = variance * (r0 * z.x + r1 * z.y + r2 * z.z);
+    let step = gate * params.lr;
+    values[3u * i] += step * dot(r0, local);
+    values[3u * i + 1u] += step * dot(r1, local);
+    values[3u * i + 2u] += step * dot(r2, local);
 }

@@ -21,6 +21,7 @@ pub(crate) struct OptimiseKernels {
     activate: wgpu::ComputePipeline,
     statistics: wgpu::ComputePipeline,
     adam: wgpu::ComputePipeline,
+    noise: wgpu::ComputePipeline,
     prepare: wgpu::ComputePipeline,
     blur: wgpu::ComputePipeline,
     ssim_terms: wgpu::ComputePipeline,
@@ -37,6 +38,7 @@ impl OptimiseKernels {
             activate: pipeline(&module, "activate"),
             statistics: pipeline(&module, "statistics"),
             adam: pipeline(&module, "adam"),
+            noise: pipeline(&module, "noise"),
             prepare: pipeline(&loss, "prepare"),
             blur: pipeline(&loss, "blur"),
             ssim_terms: pipeline(&loss, "ssim_terms"),
@@ -63,7 +65,7 @@ struct OptimiseParams {
     one_minus_beta1: f32,
     one_minus_beta2: f32,
     epsilon: f32,
-    _pad2: f32,
+    penalty: f32,
 }
 
 #[repr(C)]
@@ -138,6 +140,21 @@ pub struct StepRates {
     pub opacities: f32,
     pub sh_dc: f32,
     pub sh_rest: f32,
+    /// MCMC's penalties and position noise ([`crate::mcmc`]); `None` without MCMC.
+    pub mcmc: Option<McmcStep>,
+}
+
+/// What MCMC adds to one step on the device, as the CPU trainer computes it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct McmcStep {
+    /// Gradient weight on each opacity (the penalty's weight over the count).
+    pub opacity_penalty: f32,
+    /// Gradient weight on each scale (over three times the count and the extent).
+    pub scale_penalty: f32,
+    /// The noise's scale: NOISE_LR · position rate / extent².
+    pub noise_scale: f32,
+    pub seed: u32,
+    pub step: u32,
 }
 
 fn flat<const K: usize>(v: &[[f32; K]]) -> Vec<f32> {
@@ -337,7 +354,7 @@ impl GpuRenderer {
             one_minus_beta1: 1.0 - b1,
             one_minus_beta2: 1.0 - b2,
             epsilon: 1e-15,
-            _pad2: 0.0,
+            penalty: 0.0,
         };
         let stats_params = self.uniform("statistics params", &base);
         let group = self.bind(
@@ -358,14 +375,41 @@ impl GpuRenderer {
         // Groups: (values, gradient output, length, kind, rates).
         let n = state.n;
         let k = state.stride;
+        let (opacity_penalty, scale_penalty) = rates
+            .mcmc
+            .map_or((0.0, 0.0), |m| (m.opacity_penalty, m.scale_penalty));
         let groups = [
-            (0, &outputs[0], 3 * n, 0, rates.means, rates.means),
-            (1, &outputs[2], 3 * n, 1, rates.log_scales, rates.log_scales),
-            (2, &outputs[1], 4 * n, 0, rates.quats, rates.quats),
-            (3, &outputs[3], n, 2, rates.opacities, rates.opacities),
-            (4, &outputs[4], 3 * k * n, 3, rates.sh_dc, rates.sh_rest),
+            (0, &outputs[0], 3 * n, 0, rates.means, rates.means, 0.0),
+            (
+                1,
+                &outputs[2],
+                3 * n,
+                1,
+                rates.log_scales,
+                rates.log_scales,
+                scale_penalty,
+            ),
+            (2, &outputs[1], 4 * n, 0, rates.quats, rates.quats, 0.0),
+            (
+                3,
+                &outputs[3],
+                n,
+                2,
+                rates.opacities,
+                rates.opacities,
+                opacity_penalty,
+            ),
+            (
+                4,
+                &outputs[4],
+                3 * k * n,
+                3,
+                rates.sh_dc,
+                rates.sh_rest,
+                0.0,
+            ),
         ];
-        for (g, gradient, len, kind, lr, lr_rest) in groups {
+        for (g, gradient, len, kind, lr, lr_rest, penalty) in groups {
             if len == 0 {
                 continue;
             }
@@ -376,6 +420,7 @@ impl GpuRenderer {
                     kind,
                     lr,
                     lr_rest,
+                    penalty,
                     ..base
                 },
             );
@@ -390,6 +435,28 @@ impl GpuRenderer {
                 ],
             );
             Self::dispatch(encoder, &kernels.adam, &group, grid(len.div_ceil(GROUP)));
+        }
+        if let Some(m) = rates.mcmc {
+            let params = self.uniform(
+                "noise params",
+                &OptimiseParams {
+                    kind: m.seed,
+                    stride: m.step,
+                    lr: m.noise_scale,
+                    ..base
+                },
+            );
+            let group = self.bind(
+                &kernels.noise,
+                &[
+                    (0, &params),
+                    (1, &state.values[1]),
+                    (2, &state.values[3]),
+                    (8, &state.values[0]),
+                    (12, &state.values[2]),
+                ],
+            );
+            Self::dispatch(encoder, &kernels.noise, &group, grid(n.div_ceil(GROUP)));
         }
         Ok(())
     }
