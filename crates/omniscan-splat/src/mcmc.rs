@@ -283,7 +283,7 @@ pub fn refine(
 /// Puts a copy of `sources[j]` in `slots[j]`, each source and its copies
 /// sharing its opacity and size.
 fn share(s: &mut Splats, sources: &[usize], slots: &[usize], changed: &mut Vec<usize>) {
-    let mut copies = std::collections::HashMap::<usize, usize>::new();
+    let mut copies = std::collections::BTreeMap::<usize, usize>::new();
     for &i in sources {
         *copies.entry(i).or_insert(0) += 1;
     }

@@ -1197,6 +1197,11 @@ mod tests {
         assert_eq!(train.len(), 14);
     }
 
+    /// Trains on the CPU without progress reports.
+    fn fit(views: &[View], start: Splats, config: &TrainConfig) -> Splats {
+        train(views, start, config, &Renderer::Cpu, &mut |_, _, _| {}).unwrap()
+    }
+
     /// Four 48x36 views of a random scene, and a different scene to start from.
     fn problem() -> (Vec<View>, Splats) {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
@@ -1281,14 +1286,7 @@ mod tests {
             densification,
             ..TrainConfig::with_steps(24)
         };
-        let straight = train(
-            &views,
-            start.clone(),
-            &config,
-            &Renderer::Cpu,
-            &mut |_, _, _| {},
-        )
-        .unwrap();
+        let straight = fit(&views, start.clone(), &config);
         // Stop after the checkpoint at step 12 (mid-epoch, after densification).
         let tmp = tempfile::tempdir().unwrap();
         let path = tmp.path().join("state.safetensors");
@@ -1367,14 +1365,7 @@ mod tests {
                 })
                 .sum()
         };
-        let model = train(
-            &views,
-            start.clone(),
-            &config,
-            &Renderer::Cpu,
-            &mut |_, _, _| {},
-        )
-        .unwrap();
+        let model = fit(&views, start.clone(), &config);
         assert_eq!(
             model.len(),
             140,

@@ -42,6 +42,21 @@ fn workgroup_index(wid: vec3<u32>, groups: vec3<u32>) -> u32 {
     return wid.x + wid.y * groups.x;
 }
 
+// The rotation of a quaternion (w, x, y, z), normalised first, as columns
+// (raster.rs's quat_to_rotmat).
+fn rotation_of(quaternion: vec4<f32>) -> mat3x3<f32> {
+    let q = quaternion / sqrt(dot(quaternion, quaternion));
+    let w = q.x;
+    let x = q.y;
+    let y = q.z;
+    let z = q.w;
+    return mat3x3<f32>(
+        vec3<f32>(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + w * z), 2.0 * (x * z - w * y)),
+        vec3<f32>(2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x)),
+        vec3<f32>(2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)),
+    );
+}
+
 // Real SH constants up to degree 3 (the CPU reference's `sh.rs`).
 const SH_C0: f32 = 0.28209479177387814;
 const SH_C1: f32 = 0.4886025119029199;

@@ -127,25 +127,16 @@ fn noise(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups)
     let radius = vec2<f32>(sqrt(-2.0 * log(u[0])), sqrt(-2.0 * log(u[2])));
     let angle = vec2<f32>(6.2831855 * u[1], 6.2831855 * u[3]);
     let z = vec3<f32>(radius.x * cos(angle.x), radius.x * sin(angle.x), radius.y * cos(angle.y));
-    var q = vec4<f32>(quats[4u * i], quats[4u * i + 1u], quats[4u * i + 2u], quats[4u * i + 3u]);
-    q = q / sqrt(dot(q, q));
-    let w = q.x;
-    let x = q.y;
-    let y = q.z;
-    let k = q.w;
-    // Rows of R, as raster.rs's quat_to_rotmat.
-    let r0 = vec3<f32>(1.0 - 2.0 * (y * y + k * k), 2.0 * (x * y - w * k), 2.0 * (x * k + w * y));
-    let r1 = vec3<f32>(2.0 * (x * y + w * k), 1.0 - 2.0 * (x * x + k * k), 2.0 * (y * k - w * x));
-    let r2 = vec3<f32>(2.0 * (x * k - w * y), 2.0 * (y * k + w * x), 1.0 - 2.0 * (x * x + y * y));
+    let r = rotation_of(vec4<f32>(quats[4u * i], quats[4u * i + 1u], quats[4u * i + 2u], quats[4u * i + 3u]));
     let variance = vec3<f32>(
         exp(2.0 * log_scales[3u * i]),
         exp(2.0 * log_scales[3u * i + 1u]),
         exp(2.0 * log_scales[3u * i + 2u]),
     );
     // Σz = R·S²·Rᵀ·z.
-    let local = variance * (r0 * z.x + r1 * z.y + r2 * z.z);
+    let moved = r * (variance * (transpose(r) * z));
     let step = gate * params.lr;
-    values[3u * i] += step * dot(r0, local);
-    values[3u * i + 1u] += step * dot(r1, local);
-    values[3u * i + 2u] += step * dot(r2, local);
+    values[3u * i] += step * moved.x;
+    values[3u * i + 1u] += step * moved.y;
+    values[3u * i + 2u] += step * moved.z;
 }

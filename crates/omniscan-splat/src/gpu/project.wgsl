@@ -63,17 +63,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     let z = pc.z;
 
     // World covariance R S Sᵀ Rᵀ from the normalised quaternion (w, x, y, z).
-    var q = vec4<f32>(quats[4u * g], quats[4u * g + 1u], quats[4u * g + 2u], quats[4u * g + 3u]);
-    q = q / sqrt(dot(q, q));
-    let qw = q.x;
-    let qx = q.y;
-    let qy = q.z;
-    let qz = q.w;
-    let r = mat3x3<f32>(
-        vec3<f32>(1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy + qw * qz), 2.0 * (qx * qz - qw * qy)),
-        vec3<f32>(2.0 * (qx * qy - qw * qz), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz + qw * qx)),
-        vec3<f32>(2.0 * (qx * qz + qw * qy), 2.0 * (qy * qz - qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy)),
-    );
+    let r = rotation_of(vec4<f32>(quats[4u * g], quats[4u * g + 1u], quats[4u * g + 2u], quats[4u * g + 3u]));
     let s = vec3<f32>(scales[3u * g], scales[3u * g + 1u], scales[3u * g + 2u]);
     let rs = mat3x3<f32>(r[0] * s.x, r[1] * s.y, r[2] * s.z);
     let cov_w = rs * transpose(rs);
