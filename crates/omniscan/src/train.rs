@@ -67,6 +67,9 @@ pub struct TrainArgs {
     /// How splats are added and removed: gsplat's default strategy (clone, split, prune, opacity resets) or MCMC (relocation, 5% growth per refinement up to --max-splats, opacity and scale penalties, noise on near-transparent splats).
     #[arg(long, value_enum, default_value = "adaptive")]
     pub densification: DensificationArg,
+    /// Train an antialiased model (Mip-Splatting's 2D filter with opacity compensation, gsplat's `antialiased` mode): renders stay free of aliasing when viewed smaller than trained.
+    #[arg(long)]
+    pub antialiased: bool,
     /// Position learning rate per unit of scene extent (the splats' spread at the start), decayed to 1% over the run.
     #[arg(long, default_value_t = 1.6e-4)]
     pub position_lr: f32,
@@ -182,7 +185,9 @@ pub fn run(args: TrainArgs) -> Result<()> {
         );
         Start::Resume(Box::new(state))
     } else {
-        Start::Fresh(initial()?)
+        let mut splats = initial()?;
+        splats.antialiased = args.antialiased;
+        Start::Fresh(splats)
     };
     let mut save = |state: &omniscan_splat::train::TrainState| {
         omniscan_splat::checkpoint::save(state, &checkpoint_path)

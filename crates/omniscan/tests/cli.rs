@@ -418,8 +418,8 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
         "{from_points}"
     );
     // MCMC densification (one refinement in 200 steps, at step 100: 1000
-    // splats would grow to 1050, the cap stops them at 1030), and the 3DGS
-    // split (views 0, 8, 16 held out).
+    // splats would grow to 1050, the cap stops them at 1030), the 3DGS split
+    // (views 0, 8, 16 held out) and an antialiased model.
     let out = omniscan(&[
         "train",
         capture.to_str().unwrap(),
@@ -440,6 +440,7 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
         "1030",
         "--hold-out-first",
         "0",
+        "--antialiased",
     ]);
     assert!(
         out.status.success(),
@@ -449,6 +450,11 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
     let mcmc: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(mcmc["test_views"], 3, "{mcmc}");
     assert_eq!(mcmc["splats"], 1030, "{mcmc}");
+    // An antialiased model says so in its file, for viewers and `eval`.
+    let header = std::fs::read(&model).unwrap();
+    assert!(
+        String::from_utf8_lossy(&header[..400.min(header.len())]).contains("SplatRenderMode: mip")
+    );
     let out = train_more(&["--init", tmp.path().join("none.ply").to_str().unwrap()]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("none.ply"));
