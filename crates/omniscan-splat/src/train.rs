@@ -111,6 +111,13 @@ impl TrainConfig {
     }
 }
 
+/// Values per splat of the five parameter groups (means, log-scales,
+/// quaternions, opacity logits, SH with `k` coefficients per channel), in
+/// the order of the trainer's Adam states.
+fn moment_strides(k: usize) -> [usize; 5] {
+    [3, 3, 4, 1, k * 3]
+}
+
 /// Adam over a flat parameter array.
 struct Adam {
     m: Vec<f32>,
@@ -450,11 +457,12 @@ pub fn train_resumable(
     }
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed ^ 0x7a11);
     let print = fingerprint(config, views.len());
+    let mcmc = config.densification == Densification::Mcmc;
     let (mut s, first_step, extent, mut adam, mut grad2d_sum, mut grad2d_count, mut order) =
         match start {
             Start::Fresh(mut s) => {
                 s.validate()?;
-                if config.densification == Densification::Mcmc {
+                if mcmc {
                     crate::mcmc::prepare(&mut s);
                 }
                 // Scene extent: the splats' spread around their centre.
@@ -557,7 +565,7 @@ pub fn train_resumable(
                 opacities: 5e-2,
                 sh_dc: 2.5e-3,
                 sh_rest: 2.5e-3 / 20.0,
-                mcmc: (config.densification == Densification::Mcmc).then(|| {
+                mcmc: mcmc.then(|| {
                     let (opacity_penalty, scale_penalty) =
                         crate::mcmc::penalty_weights(s.len(), extent);
                     McmcStep {
@@ -593,7 +601,6 @@ pub fn train_resumable(
                 psnr: image_psnr,
             } = step_loss(view, &r, background, config);
             let grads = backward_binned(&g, &view.camera, &settings, &p, &bins, &d_rgb, &d_alpha);
-            let mcmc = config.densification == Densification::Mcmc;
             // Screen-space gradient statistics for densification (gsplat scales by half the image size).
             for i in 0..s.len() {
                 if !mcmc && p.visible(i) {
@@ -669,7 +676,7 @@ pub fn train_resumable(
         // Densify and prune (on the host: a resident state comes back first).
         let in_window = step >= config.densify_from && step <= config.densify_until;
         let densify_now = in_window && step % config.densify_every == 0;
-        let reset_now = config.densification == Densification::Adaptive
+        let reset_now = !mcmc
             && config.reset_every > 0
             && step % config.reset_every == 0
             && step < config.densify_until;
@@ -685,10 +692,9 @@ pub fn train_resumable(
             grad2d_sum = host.grad_sum;
             grad2d_count = host.grad_count;
         }
-        if densify_now && config.densification == Densification::Mcmc {
-            let strides = [3, 3, 4, 1, k * 3];
+        if densify_now && mcmc {
             crate::mcmc::refine(&mut s, config.max_splats, &mut rng, &mut |changed, len| {
-                for (a, stride) in adam.iter_mut().zip(strides) {
+                for (a, stride) in adam.iter_mut().zip(moment_strides(k)) {
                     a.reset(changed, stride, len);
                 }
             });
@@ -834,8 +840,7 @@ fn densify(
         out.opacity_logits.push(s.opacity_logits[i]);
         out.sh.extend_from_slice(&s.sh[i * k..(i + 1) * k]);
     }
-    let strides = [3, 3, 4, 1, k * 3];
-    for (a, stride) in adam.iter_mut().zip(strides) {
+    for (a, stride) in adam.iter_mut().zip(moment_strides(k)) {
         a.reindex(&keep, stride, added.len());
     }
     *s = out;
@@ -844,16 +849,22 @@ fn densify(
 /// Splits views into training and held-out ones: every `every`-th view is
 /// held out, counting from one (views 7, 15, 23… for 8); 0 holds out
 /// nothing. (3DGS and gsplat hold out 0, 8, 16…, which
-/// [`split_held_out_from`] with `first` 0 gives; on a small simulated
+/// [`split_held_out_from`] with `first` `Some(0)` gives; on a small simulated
 /// capture those views came out worse after 300 steps than after 10, which
 /// is still to be understood, so the figures here keep their own split.)
 pub fn split_held_out<T>(views: Vec<T>, every: usize) -> (Vec<T>, Vec<T>) {
-    split_held_out_from(views, every, every.saturating_sub(1))
+    split_held_out_from(views, every, None)
 }
 
 /// Holds out views `first`, `first + every`, `first + 2·every`, … (`first`
-/// is taken modulo `every`); `every` 0 holds out nothing.
-pub fn split_held_out_from<T>(views: Vec<T>, every: usize, first: usize) -> (Vec<T>, Vec<T>) {
+/// is taken modulo `every`; `None` is `every − 1`, as [`split_held_out`]);
+/// `every` 0 holds out nothing.
+pub fn split_held_out_from<T>(
+    views: Vec<T>,
+    every: usize,
+    first: Option<usize>,
+) -> (Vec<T>, Vec<T>) {
+    let first = first.unwrap_or(every.saturating_sub(1));
     let (mut train, mut held_out) = (Vec::new(), Vec::new());
     for (i, v) in views.into_iter().enumerate() {
         if every > 0 && i % every == first % every {
@@ -1192,7 +1203,7 @@ mod tests {
         let (train, held_out) = split_held_out((0..5).collect::<Vec<usize>>(), 0);
         assert_eq!((train.len(), held_out.len()), (5, 0));
         // The 3DGS and gsplat split.
-        let (train, held_out) = split_held_out_from((0..17).collect(), 8, 0);
+        let (train, held_out) = split_held_out_from((0..17).collect(), 8, Some(0));
         assert_eq!(held_out, vec![0, 8, 16]);
         assert_eq!(train.len(), 14);
     }

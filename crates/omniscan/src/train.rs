@@ -106,12 +106,8 @@ pub fn run(args: TrainArgs) -> Result<()> {
         bail!("--sh-degree must be 0-3");
     }
     let all = load_views(&args.capture, args.arm, args.downscale)?;
-    let (train_views, test_views) = split_held_out_from(
-        all,
-        args.hold_out_every,
-        args.hold_out_first
-            .unwrap_or(args.hold_out_every.saturating_sub(1)),
-    );
+    let (train_views, test_views) =
+        split_held_out_from(all, args.hold_out_every, args.hold_out_first);
     let start = Instant::now();
     let config = TrainConfig {
         seed: args.seed,
@@ -318,15 +314,18 @@ pub fn eval(args: EvalArgs) -> Result<()> {
         (omniscan_splat::ply::read_splats(&args.model)?, None)
     };
     let views = load_views(&args.capture, args.arm, args.downscale)?;
-    // Each compared view's index in the capture, for the per-view figures.
-    let first = args
-        .held_out_first
-        .unwrap_or(args.held_out_every.saturating_sub(1));
-    let indices = split_held_out_from((0..views.len()).collect(), args.held_out_every, first);
-    let (indices, views) = match args.held_out_every {
-        0 => (indices.0, views),
-        every => (indices.1, split_held_out_from(views, every, first).1),
-    };
+    // Each compared view keeps its index in the capture, for the per-view figures.
+    let (training, held_out) = split_held_out_from(
+        views.into_iter().enumerate().collect(),
+        args.held_out_every,
+        args.held_out_first,
+    );
+    let (indices, views): (Vec<usize>, Vec<_>) = match args.held_out_every {
+        0 => training,
+        _ => held_out,
+    }
+    .into_iter()
+    .unzip();
     if let Some(dir) = &args.renders {
         let g = model.gaussians::<f32>();
         let settings = omniscan_splat::raster::Settings {
