@@ -33,6 +33,10 @@ use crate::sh;
 #[derive(Debug, Clone, PartialEq)]
 pub struct Gradients<F> {
     pub means2d: Vec<[F; 2]>,
+    /// The per-pixel gradients with respect to the 2D mean, summed in
+    /// absolute value (per axis): AbsGS's densification statistic (gsplat's
+    /// `absgrad`), which opposite pulls across a splat do not cancel.
+    pub means2d_abs: Vec<[F; 2]>,
     pub conics: Vec<[F; 3]>,
     pub opacities_view: Vec<F>,
     /// With respect to the view-dependent colour (after the SH clamp).
@@ -72,8 +76,9 @@ impl<F: Real> Gradients<F> {
 /// passes no gradient).
 type LaneContributors<F> = [Vec<(u32, F, F, F, bool)>; LANES];
 
-/// Per-tile accumulators: (Gaussian, d mean2d, d conic, d opacity_view, d colour).
-type TileGrads<F> = Vec<(u32, [F; 2], [F; 3], F, [F; 3])>;
+/// Per-tile accumulators: (Gaussian, d mean2d, d conic, d opacity_view, d colour,
+/// |d mean2d| summed per pixel).
+type TileGrads<F> = Vec<(u32, [F; 2], [F; 3], F, [F; 3], [F; 2])>;
 
 /// Gradients of L given dL/d(rgb) and dL/d(alpha) per pixel (row-major).
 pub fn backward<F: Real>(
@@ -108,7 +113,10 @@ pub(crate) fn backward_binned<F: Real>(
             let list = &tiles[t];
             let mut acc: TileGrads<F> = list
                 .iter()
-                .map(|&i| (i, [F::zero(); 2], [F::zero(); 3], F::zero(), [F::zero(); 3]))
+                .map(|&i| {
+                    let zero2 = [F::zero(); 2];
+                    (i, zero2, [F::zero(); 3], F::zero(), [F::zero(); 3], zero2)
+                })
                 .collect();
             let (ox, oy) = ((t as u32 % tx) * TILE, (t as u32 / tx) * TILE);
             // The forward pass's packing and sub-tile culling, so each pixel
@@ -175,8 +183,11 @@ pub(crate) fn backward_binned<F: Real>(
                         entry.2[0] = entry.2[0] + d_sigma * F::c(0.5) * dx * dx;
                         entry.2[1] = entry.2[1] + d_sigma * dx * dy;
                         entry.2[2] = entry.2[2] + d_sigma * F::c(0.5) * dy * dy;
-                        entry.1[0] = entry.1[0] + d_sigma * (a * dx + b * dy);
-                        entry.1[1] = entry.1[1] + d_sigma * (b * dx + cc * dy);
+                        let d_mean = [d_sigma * (a * dx + b * dy), d_sigma * (b * dx + cc * dy)];
+                        for k in 0..2 {
+                            entry.1[k] = entry.1[k] + d_mean[k];
+                            entry.5[k] = entry.5[k] + d_mean[k].abs();
+                        }
                     }
                 }
             }
@@ -185,14 +196,16 @@ pub(crate) fn backward_binned<F: Real>(
         .collect();
 
     let mut d_mean2d = vec![[F::zero(); 2]; n];
+    let mut d_mean2d_abs = vec![[F::zero(); 2]; n];
     let mut d_conic = vec![[F::zero(); 3]; n];
     let mut d_opacity_view = vec![F::zero(); n];
     let mut d_color_view = vec![[F::zero(); 3]; n];
     for tile_grads in per_tile {
-        for (i, m, c, o, col) in tile_grads {
+        for (i, m, c, o, col, m_abs) in tile_grads {
             let i = i as usize;
             for k in 0..2 {
                 d_mean2d[i][k] = d_mean2d[i][k] + m[k];
+                d_mean2d_abs[i][k] = d_mean2d_abs[i][k] + m_abs[k];
             }
             for k in 0..3 {
                 d_conic[i][k] = d_conic[i][k] + c[k];
@@ -203,6 +216,7 @@ pub(crate) fn backward_binned<F: Real>(
     }
     let mut grads = Gradients {
         means2d: d_mean2d,
+        means2d_abs: d_mean2d_abs,
         conics: d_conic,
         opacities_view: d_opacity_view,
         colors_view: d_color_view,
@@ -265,6 +279,7 @@ fn project_backward<F: Real>(
         scales,
         opacities,
         colors,
+        ..
     } = grads;
     let per_splat = match &g.colors {
         Colors::Rgb(_) => 1,
@@ -688,5 +703,40 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// AbsGS's statistic is the sum over pixels of each pixel's own 2D mean
+    /// gradient in absolute value: the backward pass of a loss on one pixel
+    /// alone gives that pixel's, for every pixel in turn.
+    #[test]
+    fn absolute_mean2d_gradients_sum_each_pixels_own() {
+        let (g, camera, settings, w_rgb, w_a) = scene(Mode::Classic, Some(1));
+        let (p, _) = render(&g, &camera, &settings);
+        let all = backward(&g, &camera, &settings, &p, &w_rgb, &w_a);
+        let mut summed = vec![[0.0; 2]; g.means.len()];
+        for pixel in 0..w_a.len() {
+            let mut one_rgb = vec![[0.0; 3]; w_a.len()];
+            let mut one_alpha = vec![0.0; w_a.len()];
+            one_rgb[pixel] = w_rgb[pixel];
+            one_alpha[pixel] = w_a[pixel];
+            let single = backward(&g, &camera, &settings, &p, &one_rgb, &one_alpha);
+            for (sum, d) in summed.iter_mut().zip(&single.means2d) {
+                sum[0] += d[0].abs();
+                sum[1] += d[1].abs();
+            }
+        }
+        let mut cancelled = false;
+        for i in 0..g.means.len() {
+            for a in 0..2 {
+                let (got, want) = (all.means2d_abs[i][a], summed[i][a]);
+                assert!(
+                    (got - want).abs() <= 1e-9 * (1.0 + want),
+                    "splat {i} axis {a}: {got} against {want}"
+                );
+                assert!(got + 1e-12 >= all.means2d[i][a].abs());
+                cancelled |= got > 2.0 * all.means2d[i][a].abs() + 1e-9;
+            }
+        }
+        assert!(cancelled, "some splat's pulls cancel in the plain sum");
     }
 }

@@ -271,6 +271,7 @@ fn gpu_gradients_match_the_cpu_reference() {
         let label = format!("{degree:?} {mode:?}");
         let errors = [
             ("means2d", relative(&cpu.means2d, &got.means2d)),
+            ("means2d_abs", relative(&cpu.means2d_abs, &got.means2d_abs)),
             ("conics", relative(&cpu.conics, &got.conics)),
             (
                 "opacities_view",
@@ -353,6 +354,8 @@ fn training_on_the_gpu_follows_the_cpu_reference() {
         sh_interval: 10,
         ..TrainConfig::with_steps(30)
     };
+    // AbsGS's statistic from the device's absolute sums.
+    let absolute = adaptive.with_absolute_gradients();
     // MCMC: penalties in Adam, the noise kernel, relocation and growth on the host.
     let mcmc = TrainConfig {
         densify_from: 10,
@@ -362,7 +365,11 @@ fn training_on_the_gpu_follows_the_cpu_reference() {
         max_splats: 320,
         ..TrainConfig::mcmc(30)
     };
-    for config in [adaptive, mcmc] {
+    for (label, config) in [
+        ("adaptive", adaptive),
+        ("absolute gradients", absolute),
+        ("mcmc", mcmc),
+    ] {
         let mut cpu_losses = Vec::new();
         let cpu = train(
             &views,
@@ -385,14 +392,12 @@ fn training_on_the_gpu_follows_the_cpu_reference() {
         assert_eq!(
             cpu.len(),
             gpu.len(),
-            "{:?}: densification took the same decisions",
-            config.densification
+            "{label}: densification took the same decisions"
         );
         for (step, (a, b)) in cpu_losses.iter().zip(&gpu_losses).enumerate() {
             assert!(
                 (a - b).abs() <= 1e-3 * a.abs().max(1e-3),
-                "{:?} step {step}: loss {a} on the CPU, {b} on the GPU",
-                config.densification
+                "{label} step {step}: loss {a} on the CPU, {b} on the GPU"
             );
         }
         let worst = cpu
@@ -401,7 +406,7 @@ fn training_on_the_gpu_follows_the_cpu_reference() {
             .flatten()
             .zip(gpu.means.iter().flatten())
             .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
-        assert!(worst < 1e-3, "means drifted apart by {worst}");
+        assert!(worst < 1e-3, "{label}: means drifted apart by {worst}");
         assert!(cpu_losses.last() < cpu_losses.first(), "the loss falls");
     }
 }
@@ -467,6 +472,7 @@ fn mcmc_noise_on_the_gpu_matches_the_cpu() {
             seed: mcmc::noise_seed(seed),
             step: step as u32,
         }),
+        absolute_gradients: false,
     };
     let image = vec![[0.5f32; 3]; pixels];
     let (object, gripper) = (vec![1.0f32; pixels], vec![0.0f32; pixels]);

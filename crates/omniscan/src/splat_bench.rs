@@ -220,6 +220,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                     sh_dc: 2.5e-3,
                     sh_rest: 1.25e-4,
                     mcmc: None,
+                    absolute_gradients: false,
                 };
                 let target = omniscan_splat::gpu::training::LossTarget {
                     image: &view.image,

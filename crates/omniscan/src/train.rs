@@ -11,8 +11,8 @@ use omniscan_core::capture::{Arm, Capture};
 use omniscan_core::poses::ViewSet;
 use omniscan_splat::ply::write_splats;
 use omniscan_splat::train::{
-    Checkpoints, Start, TrainConfig, initial_splats, splats_from_points, split_held_out,
-    split_held_out_from, train, train_resumable, views_from_capture,
+    Checkpoints, Densification, Start, TrainConfig, initial_splats, splats_from_points,
+    split_held_out, split_held_out_from, train, train_resumable, views_from_capture,
 };
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -70,6 +70,12 @@ pub struct TrainArgs {
     /// Train an antialiased model (Mip-Splatting's 2D filter with opacity compensation, gsplat's `antialiased` mode): renders stay free of aliasing when viewed smaller than trained.
     #[arg(long)]
     pub antialiased: bool,
+    /// Densify by the per-pixel screen-space gradients summed in absolute value (AbsGS, gsplat's `absgrad`), so large splats over fine texture split; the default threshold becomes 0.0008.
+    #[arg(long)]
+    pub absgrad: bool,
+    /// Screen-space gradient (pixels, averaged over the views that saw the splat) above which adaptive densification clones or splits a splat; default 0.0002, or 0.0008 with --absgrad.
+    #[arg(long)]
+    pub grad_threshold: Option<f32>,
     /// Position learning rate per unit of scene extent (the splats' spread at the start), decayed to 1% over the run.
     #[arg(long, default_value_t = 1.6e-4)]
     pub position_lr: f32,
@@ -109,15 +115,22 @@ pub fn run(args: TrainArgs) -> Result<()> {
     let (train_views, test_views) =
         split_held_out_from(all, args.hold_out_every, args.hold_out_first);
     let start = Instant::now();
+    let strategy = match args.densification {
+        DensificationArg::Adaptive => TrainConfig::with_steps(args.steps),
+        DensificationArg::Mcmc => TrainConfig::mcmc(args.steps),
+    };
+    let strategy = if args.absgrad {
+        strategy.with_absolute_gradients()
+    } else {
+        strategy
+    };
     let config = TrainConfig {
         seed: args.seed,
         max_sh_degree: args.sh_degree,
         max_splats: args.max_splats,
         position_lr: args.position_lr,
-        ..match args.densification {
-            DensificationArg::Adaptive => TrainConfig::with_steps(args.steps),
-            DensificationArg::Mcmc => TrainConfig::mcmc(args.steps),
-        }
+        grad_threshold: args.grad_threshold.unwrap_or(strategy.grad_threshold),
+        ..strategy
     };
     let bar = indicatif::ProgressBar::new(args.steps as u64);
     bar.set_style(
@@ -226,6 +239,19 @@ pub fn run(args: TrainArgs) -> Result<()> {
         "seconds": start.elapsed().as_secs_f64(),
         "train_views": train_views.len(),
         "test_views": test_views.len(),
+        "settings": {
+            "densification": match config.densification {
+                Densification::Adaptive => "adaptive",
+                Densification::Mcmc => "mcmc",
+            },
+            "absolute_gradients": config.absolute_gradients,
+            "grad_threshold": config.grad_threshold,
+            "antialiased": model.antialiased,
+            "sh_degree": config.max_sh_degree,
+            "position_lr": config.position_lr,
+            "max_splats": config.max_splats,
+            "seed": config.seed,
+        },
         "test": eval,
     });
     if args.json {

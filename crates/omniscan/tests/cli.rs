@@ -405,8 +405,9 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
     let out = train_more(&["--resume"]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("no checkpoint"));
-    // Starting from a point cloud: the first model's splat centres.
-    let out = train_more(&["--init", model.to_str().unwrap()]);
+    // Starting from a point cloud: the first model's splat centres; with
+    // AbsGS's statistic, whose threshold the report gives.
+    let out = train_more(&["--init", model.to_str().unwrap(), "--absgrad"]);
     assert!(
         out.status.success(),
         "{}",
@@ -417,6 +418,9 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
         from_points["splats"].as_u64().unwrap() > 100,
         "{from_points}"
     );
+    let settings = &from_points["settings"];
+    assert_eq!(settings["absolute_gradients"], true, "{from_points}");
+    assert!((settings["grad_threshold"].as_f64().unwrap() - 8e-4).abs() < 1e-9);
     // MCMC densification (one refinement in 200 steps, at step 100: 1000
     // splats would grow to 1050, the cap stops them at 1030), the 3DGS split
     // (views 0, 8, 16 held out) and an antialiased model.

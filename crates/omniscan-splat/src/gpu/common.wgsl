@@ -31,6 +31,8 @@ const SIGMA_SKIP: f32 = 5.55;
 const T_STOP: f32 = 1e-4;
 // Floats per pixel of the forward image (see rasterize.wgsl).
 const PIXEL_FLOATS: u32 = 7u;
+// Floats per Gaussian of the 2D gradients (see rasterize_backward.wgsl).
+const GRADS2D_FLOATS: u32 = 12u;
 
 // The flat index of a thread in a 256-wide dispatch folded into two dimensions.
 fn flat_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {

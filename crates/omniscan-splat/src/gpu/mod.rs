@@ -32,6 +32,8 @@ use crate::raster::{Camera, Colors, Gaussians, Mode, Render, Settings, TILE, Vie
 const COMMON: &str = include_str!("common.wgsl");
 /// Floats per pixel of the forward image (`PIXEL_FLOATS` in common.wgsl).
 const PIXEL_FLOATS: u64 = 7;
+/// Floats per Gaussian of the 2D gradients (`GRADS2D_FLOATS` in common.wgsl).
+const GRADS2D_FLOATS: u64 = 12;
 const PROJECT: &str = include_str!("project.wgsl");
 const SCAN: &str = include_str!("scan.wgsl");
 const SORT: &str = include_str!("sort.wgsl");
@@ -889,7 +891,7 @@ impl GpuRenderer {
         };
         let n = frame.gaussians as u64;
         let k = frame.sh_stride as u64;
-        let grads2d = self.zeroed("2D gradients", 10 * n);
+        let grads2d = self.zeroed("2D gradients", GRADS2D_FLOATS * n);
         let outputs = [
             self.zeroed("mean gradients", 3 * n),
             self.zeroed("quaternion gradients", 4 * n),
@@ -950,7 +952,7 @@ impl GpuRenderer {
         let n = frame.gaussians as u64;
         let k = frame.sh_stride as u64;
         // One read-back of everything: the 2D gradients, then each output.
-        let sizes = [10 * n, 3 * n, 4 * n, 3 * n, n, 3 * k * n];
+        let sizes = [GRADS2D_FLOATS * n, 3 * n, 4 * n, 3 * n, n, 3 * k * n];
         let total: u64 = sizes.iter().sum();
         let gathered = self.zeroed("gradients", total);
         let mut offset = 0;
@@ -962,7 +964,7 @@ impl GpuRenderer {
         }
         let bytes = self.submit_and_read(encoder, &gathered, 4 * total)?;
         let all: Vec<f32> = bytes.iter().map(|&w| f32::from_bits(w)).collect();
-        let (g2, rest) = all.split_at((10 * n) as usize);
+        let (g2, rest) = all.split_at((GRADS2D_FLOATS * n) as usize);
         let (d_means, rest) = rest.split_at((3 * n) as usize);
         let (d_quats, rest) = rest.split_at((4 * n) as usize);
         let (d_scales, rest) = rest.split_at((3 * n) as usize);
@@ -972,12 +974,14 @@ impl GpuRenderer {
                 .map(|c| [c[0], c[1], c[2]])
                 .collect::<Vec<_>>()
         };
-        let visible = g2.chunks_exact(10).map(|c| c[9] > 0.5).collect();
+        let per_gaussian = || g2.chunks_exact(GRADS2D_FLOATS as usize);
+        let visible = per_gaussian().map(|c| c[9] > 0.5).collect();
         let gradients = Gradients {
-            means2d: g2.chunks_exact(10).map(|c| [c[0], c[1]]).collect(),
-            conics: g2.chunks_exact(10).map(|c| [c[2], c[3], c[4]]).collect(),
-            opacities_view: g2.chunks_exact(10).map(|c| c[5]).collect(),
-            colors_view: g2.chunks_exact(10).map(|c| [c[6], c[7], c[8]]).collect(),
+            means2d: per_gaussian().map(|c| [c[0], c[1]]).collect(),
+            means2d_abs: per_gaussian().map(|c| [c[10], c[11]]).collect(),
+            conics: per_gaussian().map(|c| [c[2], c[3], c[4]]).collect(),
+            opacities_view: per_gaussian().map(|c| c[5]).collect(),
+            colors_view: per_gaussian().map(|c| [c[6], c[7], c[8]]).collect(),
             means: triples(d_means),
             quats: d_quats
                 .chunks_exact(4)

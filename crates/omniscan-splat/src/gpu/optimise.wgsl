@@ -4,9 +4,10 @@
 
 struct Params {
     len: u32,
-    // 0 plain, 1 log-scale (gradient given for exp), 2 opacity logit
+    // Adam: 0 plain, 1 log-scale (gradient given for exp), 2 opacity logit
     // (gradient given for the sigmoid), 3 SH (first coefficient of each
-    // Gaussian at `lr`, the rest at `lr_rest`).
+    // Gaussian at `lr`, the rest at `lr_rest`). Statistics: 0 the summed
+    // mean2d gradient, 1 its per-pixel absolute sums (AbsGS).
     kind: u32,
     stride: u32,
     _pad: u32,
@@ -56,11 +57,13 @@ fn activate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
 @compute @workgroup_size(256)
 fn statistics(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let i = flat_index(gid, groups);
-    if (i >= params.len || grads2d[10u * i + 9u] < 0.5) {
+    let base = GRADS2D_FLOATS * i;
+    if (i >= params.len || grads2d[base + 9u] < 0.5) {
         return;
     }
-    let gx = grads2d[10u * i] * params.half_width;
-    let gy = grads2d[10u * i + 1u] * params.half_height;
+    let at = base + select(0u, 10u, params.kind == 1u);
+    let gx = grads2d[at] * params.half_width;
+    let gy = grads2d[at + 1u] * params.half_height;
     grad_sum[i] += sqrt(gx * gx + gy * gy);
     grad_count[i] += 1u;
 }

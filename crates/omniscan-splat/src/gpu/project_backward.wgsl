@@ -12,8 +12,8 @@
 @group(0) @binding(4) var<storage, read> opacities: array<f32>;
 @group(0) @binding(5) var<storage, read> coeffs: array<f32>;
 @group(0) @binding(6) var<storage, read> projected: array<f32>;
-// 10 per Gaussian (see rasterize_backward.wgsl); the tenth is set here to
-// 1 for visible Gaussians (the densification statistics count them).
+// GRADS2D_FLOATS per Gaussian (see rasterize_backward.wgsl); the tenth is set
+// here to 1 for visible Gaussians (the densification statistics count them).
 @group(0) @binding(7) var<storage, read_write> grads2d: array<f32>;
 @group(0) @binding(8) var<storage, read_write> d_means: array<f32>;
 @group(0) @binding(9) var<storage, read_write> d_quats: array<f32>;
@@ -45,7 +45,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     let k = cam.counts.y;
     let stride = cam.counts2.y;
     zero_outputs(g, stride);
-    let b9 = 10u * g;
+    let b9 = GRADS2D_FLOATS * g;
     let visible = projected[12u * g + 10u] > 0.5;
     grads2d[b9 + 9u] = select(0.0, 1.0, visible);
     if (!visible) {

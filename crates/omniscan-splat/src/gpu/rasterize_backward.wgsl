@@ -16,8 +16,9 @@
 @group(0) @binding(5) var<storage, read> last_contributor: array<u32>;
 // 4 per pixel: dL/dr, dL/dg, dL/db, dL/dalpha.
 @group(0) @binding(6) var<storage, read> d_image: array<f32>;
-// 10 per Gaussian: mean2d x, y; conic a, b, c; view opacity; view colour r, g, b;
-// (the projection backward writes visibility in the tenth).
+// GRADS2D_FLOATS (12) per Gaussian: mean2d x, y; conic a, b, c; view opacity;
+// view colour r, g, b; visibility (written by the projection backward); the
+// per-pixel mean2d gradients summed in absolute value, x, y (AbsGS).
 @group(0) @binding(7) var<storage, read_write> grads: array<atomic<u32>>;
 
 
@@ -139,8 +140,9 @@ fn main(
                 let s_conic = subgroupAdd(d_conic);
                 let s_opacity = subgroupAdd(d_opacity);
                 let s_colour = subgroupAdd(d_colour);
+                let s_mean_abs = subgroupAdd(abs(d_mean));
                 if (lane == 0u) {
-                    let base = 10u * batch_id[j];
+                    let base = GRADS2D_FLOATS * batch_id[j];
                     add_float(base, s_mean.x);
                     add_float(base + 1u, s_mean.y);
                     add_float(base + 2u, s_conic.x);
@@ -150,6 +152,8 @@ fn main(
                     add_float(base + 6u, s_colour.x);
                     add_float(base + 7u, s_colour.y);
                     add_float(base + 8u, s_colour.z);
+                    add_float(base + 10u, s_mean_abs.x);
+                    add_float(base + 11u, s_mean_abs.y);
                 }
             }
         }

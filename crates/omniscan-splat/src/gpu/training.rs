@@ -142,6 +142,9 @@ pub struct StepRates {
     pub sh_rest: f32,
     /// MCMC's penalties and position noise ([`crate::mcmc`]); `None` without MCMC.
     pub mcmc: Option<McmcStep>,
+    /// Densification statistics from the per-pixel absolute 2D mean
+    /// gradients (AbsGS) instead of their sum.
+    pub absolute_gradients: bool,
 }
 
 /// What MCMC adds to one step on the device, as the CPU trainer computes it.
@@ -356,7 +359,13 @@ impl GpuRenderer {
             epsilon: 1e-15,
             penalty: 0.0,
         };
-        let stats_params = self.uniform("statistics params", &base);
+        let stats_params = self.uniform(
+            "statistics params",
+            &OptimiseParams {
+                kind: rates.absolute_gradients.into(),
+                ..base
+            },
+        );
         let group = self.bind(
             &kernels.statistics,
             &[
