@@ -311,7 +311,7 @@ fn color_rmse(source: &PointCloud, target: &Target, max_distance: f64, pose: &Po
     }
     let (mut sum, mut n) = (0.0, 0usize);
     for (i, p) in source.points.iter().enumerate() {
-        if let Some((j, _)) = target.neighbors.nearest_within(&(pose * p), max_distance) {
+        if let Some((j, _)) = target.neighbors().nearest_within(&(pose * p), max_distance) {
             let d = source.intensity(i) - target.cloud.intensity(j);
             sum += d * d;
             n += 1;
