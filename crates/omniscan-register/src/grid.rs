@@ -51,6 +51,11 @@ impl Hasher for CellHasher {
 
 type CellMap = HashMap<u64, (u32, u32), BuildHasherDefault<CellHasher>>;
 
+thread_local! {
+    /// The k-th nearest distance of this thread's last [`Grid::knn_map`] query.
+    static LAST_KTH: std::cell::Cell<f64> = const { std::cell::Cell::new(0.0) };
+}
+
 /// Points bucketed into cubic cells; see the module documentation.
 #[derive(Clone)]
 pub struct Grid {
@@ -421,13 +426,26 @@ impl Grid {
             if k == 0 || cand.ids.len() < k {
                 return f(i, None);
             }
-            // Only points within reach can be among a certain answer.
-            cand.within(reach * reach, found);
-            if found.len() < k {
-                return f(i, None);
+            // Neighbouring queries (one cell's, in turn on one thread) have
+            // about the same k-th distance: the candidates within a little
+            // more than the last one's hold this query's k nearest if there
+            // are k of them, and are far fewer to select from than all
+            // those within reach (on `frag_115`, the graph's pass took 16 ms
+            // before). Only the speed depends on the guess, not the answer.
+            let guess = LAST_KTH.get() * 1.25;
+            if guess < reach {
+                cand.within(guess * guess, found);
+            }
+            if guess >= reach || found.len() < k {
+                // Only points within reach can be among a certain answer.
+                cand.within(reach * reach, found);
+                if found.len() < k {
+                    return f(i, None);
+                }
             }
             keep_nearest(found, k);
             found.sort_unstable_by(by_distance);
+            LAST_KTH.set(found[k - 1].1.sqrt());
             f(i, Some(&found[..]))
         })
     }
