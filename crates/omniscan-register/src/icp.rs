@@ -297,7 +297,8 @@ impl<'a> Target<'a> {
     fn search(&self, grid: Option<&Grid>, q: &Point3<f64>, start: u32) -> Hint {
         let g = self.graph(grid);
         let mut cur = start as usize;
-        // The walk runs in f32 on the inline copies...
+        // The walk runs in f32 on the target's f32 copy; `certify` settles
+        // in f64 what f32 rounding could have ordered wrongly.
         let qf = [q.x as f32, q.y as f32, q.z as f32];
         loop {
             let list = &g.lists[cur];

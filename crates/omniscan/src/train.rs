@@ -70,10 +70,10 @@ pub struct TrainArgs {
     /// Train an antialiased model (Mip-Splatting's 2D filter with opacity compensation, gsplat's `antialiased` mode): renders stay free of aliasing when viewed smaller than trained.
     #[arg(long)]
     pub antialiased: bool,
-    /// Densify by the per-pixel screen-space gradients summed in absolute value (AbsGS, gsplat's `absgrad`), so large splats over fine texture split; the default threshold becomes 0.0008.
+    /// Densify by the per-pixel screen-space gradients summed in absolute value (AbsGS, gsplat's `absgrad`), so large splats over fine texture split; the default threshold becomes 0.0008. Adaptive densification only.
     #[arg(long)]
     pub absgrad: bool,
-    /// Screen-space gradient (pixels, averaged over the views that saw the splat) above which adaptive densification clones or splits a splat; default 0.0002, or 0.0008 with --absgrad.
+    /// The screen-space gradient (gsplat's: of the loss with respect to the splat's 2D mean in half-image units, averaged over the views that saw it) above which adaptive densification clones or splits a splat; default 0.0002, or 0.0008 with --absgrad. Lower gives more splats.
     #[arg(long)]
     pub grad_threshold: Option<f32>,
     /// Position learning rate per unit of scene extent (the splats' spread at the start), decayed to 1% over the run.
@@ -110,6 +110,18 @@ pub struct TrainArgs {
 pub fn run(args: TrainArgs) -> Result<()> {
     if args.sh_degree > 3 {
         bail!("--sh-degree must be 0-3");
+    }
+    if matches!(args.densification, DensificationArg::Mcmc)
+        && (args.absgrad || args.grad_threshold.is_some())
+    {
+        bail!(
+            "--absgrad and --grad-threshold steer adaptive densification; MCMC does not use them"
+        );
+    }
+    if let Some(threshold) = args.grad_threshold
+        && !(threshold.is_finite() && threshold > 0.0)
+    {
+        bail!("--grad-threshold must be a positive number, got {threshold}");
     }
     let all = load_views(&args.capture, args.arm, args.downscale)?;
     let (train_views, test_views) =

@@ -405,6 +405,21 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
     let out = train_more(&["--resume"]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("no checkpoint"));
+    for (flags, message) in [
+        (&["--grad-threshold", "0"][..], "--grad-threshold must be"),
+        (
+            &["--densification", "mcmc", "--absgrad"][..],
+            "MCMC does not use",
+        ),
+    ] {
+        let out = train_more(flags);
+        assert!(!out.status.success());
+        assert!(
+            String::from_utf8_lossy(&out.stderr).contains(message),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
     // Starting from a point cloud: the first model's splat centres; with
     // AbsGS's statistic, whose threshold the report gives.
     let out = train_more(&["--init", model.to_str().unwrap(), "--absgrad"]);
