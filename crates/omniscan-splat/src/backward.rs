@@ -35,7 +35,9 @@ pub struct Gradients<F> {
     pub means2d: Vec<[F; 2]>,
     /// The per-pixel gradients with respect to the 2D mean, summed in
     /// absolute value (per axis): AbsGS's densification statistic (gsplat's
-    /// `absgrad`), which opposite pulls across a splat do not cancel.
+    /// `absgrad`), which opposite pulls across a splat do not cancel. Zero
+    /// where the caller did not ask for it (it costs the training step a
+    /// few percent).
     pub means2d_abs: Vec<[F; 2]>,
     pub conics: Vec<[F; 3]>,
     pub opacities_view: Vec<F>,
@@ -80,7 +82,8 @@ type LaneContributors<F> = [Vec<(u32, F, F, F, bool)>; LANES];
 /// |d mean2d| summed per pixel).
 type TileGrads<F> = Vec<(u32, [F; 2], [F; 3], F, [F; 3], [F; 2])>;
 
-/// Gradients of L given dL/d(rgb) and dL/d(alpha) per pixel (row-major).
+/// Gradients of L given dL/d(rgb) and dL/d(alpha) per pixel (row-major),
+/// [`Gradients::means2d_abs`] included.
 pub fn backward<F: Real>(
     g: &Gaussians<F>,
     camera: &Camera<F>,
@@ -90,10 +93,12 @@ pub fn backward<F: Real>(
     d_alpha: &[F],
 ) -> Gradients<F> {
     let bins = bin_tiles(p, camera.width, camera.height);
-    backward_binned(g, camera, settings, p, &bins, d_rgb, d_alpha)
+    backward_binned(g, camera, settings, p, &bins, d_rgb, d_alpha, true)
 }
 
-/// [`backward`] with the forward pass's tile bins.
+/// [`backward`] with the forward pass's tile bins; `absolute`: whether to
+/// sum [`Gradients::means2d_abs`].
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn backward_binned<F: Real>(
     g: &Gaussians<F>,
     camera: &Camera<F>,
@@ -102,6 +107,7 @@ pub(crate) fn backward_binned<F: Real>(
     bins: &TileBins<F>,
     d_rgb: &[[F; 3]],
     d_alpha: &[F],
+    absolute: bool,
 ) -> Gradients<F> {
     let n = g.means.len();
     let (width, height) = (camera.width, camera.height);
@@ -186,7 +192,11 @@ pub(crate) fn backward_binned<F: Real>(
                         let d_mean = [d_sigma * (a * dx + b * dy), d_sigma * (b * dx + cc * dy)];
                         for k in 0..2 {
                             entry.1[k] = entry.1[k] + d_mean[k];
-                            entry.5[k] = entry.5[k] + d_mean[k].abs();
+                        }
+                        if absolute {
+                            for k in 0..2 {
+                                entry.5[k] = entry.5[k] + d_mean[k].abs();
+                            }
                         }
                     }
                 }

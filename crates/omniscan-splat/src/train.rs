@@ -619,7 +619,16 @@ pub fn train_resumable(
                 d_alpha,
                 psnr: image_psnr,
             } = step_loss(view, &r, background, config);
-            let grads = backward_binned(&g, &view.camera, &settings, &p, &bins, &d_rgb, &d_alpha);
+            let grads = backward_binned(
+                &g,
+                &view.camera,
+                &settings,
+                &p,
+                &bins,
+                &d_rgb,
+                &d_alpha,
+                config.absolute_gradients,
+            );
             // Screen-space gradient statistics for densification (gsplat scales by half the image size).
             let screen_gradients = if config.absolute_gradients {
                 &grads.means2d_abs

@@ -869,19 +869,20 @@ impl GpuRenderer {
             .collect();
         let d_image = self.storage("image gradients", &d_image);
         let mut encoder = self.device.create_command_encoder(&Default::default());
-        let (grads2d, outputs) = self.record_backward_from(&mut encoder, frame, &d_image)?;
+        let (grads2d, outputs) = self.record_backward_from(&mut encoder, frame, &d_image, true)?;
         Ok((encoder, grads2d, outputs))
     }
 
     /// Records the backward pass of `frame` given dL/d(rgb, alpha) per pixel
-    /// (4 floats) in `d_image`: the 2D gradients (10 per Gaussian) and the
-    /// parameter gradients (means, quaternions, scales, opacities, colour
-    /// coefficients).
+    /// (4 floats) in `d_image`: the 2D gradients (`GRADS2D_FLOATS` per
+    /// Gaussian, the absolute sums only if `absolute`) and the parameter
+    /// gradients (means, quaternions, scales, opacities, colour coefficients).
     pub(crate) fn record_backward_from(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         frame: &GpuFrame,
         d_image: &wgpu::Buffer,
+        absolute: bool,
     ) -> Result<(wgpu::Buffer, [wgpu::Buffer; 5]), SplatError> {
         let Some((raster_backward, project_backward)) = &self.backward else {
             return Err(SplatError::Invalid(format!(
@@ -900,10 +901,12 @@ impl GpuRenderer {
             self.zeroed("colour gradients", 3 * k * n),
         ];
         encoder.clear_buffer(&grads2d, 0, None);
+        let options = self.uniform("backward options", &[u32::from(absolute), 0, 0, 0]);
         let group = self.bind(
             raster_backward,
             &[
                 (0, &frame.raster_params),
+                (8, &options),
                 (1, &frame.projected),
                 (2, &frame.sorted_index),
                 (3, &frame.ranges),

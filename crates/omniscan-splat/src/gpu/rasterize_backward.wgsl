@@ -20,6 +20,8 @@
 // view colour r, g, b; visibility (written by the projection backward); the
 // per-pixel mean2d gradients summed in absolute value, x, y (AbsGS).
 @group(0) @binding(7) var<storage, read_write> grads: array<atomic<u32>>;
+// x: 1 to sum the absolute mean2d gradients (AbsGS), 0 to spare the work.
+@group(0) @binding(8) var<uniform> options: vec4<u32>;
 
 
 var<workgroup> tile_range: vec2<u32>;
@@ -140,7 +142,11 @@ fn main(
                 let s_conic = subgroupAdd(d_conic);
                 let s_opacity = subgroupAdd(d_opacity);
                 let s_colour = subgroupAdd(d_colour);
-                let s_mean_abs = subgroupAdd(abs(d_mean));
+                // `options` is uniform, so every lane takes the same branch.
+                var s_mean_abs = vec2<f32>(0.0);
+                if (options.x == 1u) {
+                    s_mean_abs = subgroupAdd(abs(d_mean));
+                }
                 if (lane == 0u) {
                     let base = GRADS2D_FLOATS * batch_id[j];
                     add_float(base, s_mean.x);
@@ -152,8 +158,10 @@ fn main(
                     add_float(base + 6u, s_colour.x);
                     add_float(base + 7u, s_colour.y);
                     add_float(base + 8u, s_colour.z);
-                    add_float(base + 10u, s_mean_abs.x);
-                    add_float(base + 11u, s_mean_abs.y);
+                    if (options.x == 1u) {
+                        add_float(base + 10u, s_mean_abs.x);
+                        add_float(base + 11u, s_mean_abs.y);
+                    }
                 }
             }
         }

@@ -574,7 +574,8 @@ impl GpuRenderer {
             ],
         );
         Self::dispatch(&mut encoder, &kernels.gradient, &group, pixel_groups);
-        let (grads2d, outputs) = self.record_backward_from(&mut encoder, frame, &d_image)?;
+        let (grads2d, outputs) =
+            self.record_backward_from(&mut encoder, frame, &d_image, rates.absolute_gradients)?;
         self.record_step(&mut encoder, state, frame, &grads2d, &outputs, rates, t)?;
         let bytes = self.submit_and_read(encoder, &sums, 20)?;
         if let Some(e) = pollster::block_on(scope.pop()) {
