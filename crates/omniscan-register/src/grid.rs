@@ -470,17 +470,27 @@ impl Grid {
 
     /// The nearest and second-nearest points to `q` within `radius` (at most
     /// [`Grid::cell`]): (index, squared distance) of the nearest, if any, and
-    /// the second's squared distance (infinite if none).
+    /// the second's squared distance (infinite if none). Only the cells the
+    /// ball reaches are read: a small radius reads a few of the 27.
     pub fn nearest_two(&self, q: &Point3<f64>, radius: f64) -> (Option<(usize, f64)>, f64) {
         let p = [q.x, q.y, q.z];
-        let r2 = radius.min(self.cell).powi(2);
+        let r = radius.min(self.cell);
+        let centre = self.coords_of(&p);
+        let low = self.coords_of(&p.map(|v| v - r));
+        let high = self.coords_of(&p.map(|v| v + r));
+        let low: [i64; 3] = std::array::from_fn(|a| low[a].max(centre[a] - 1));
+        let high: [i64; 3] = std::array::from_fn(|a| high[a].min(centre[a] + 1));
         let mut two = NearestTwo::default();
-        self.block(self.coords_of(&p), |s, e| {
-            for k in s..e {
-                two.offer(distance2(&p, &self.sorted[k]), self.ids[k] as usize);
+        for z in low[2]..=high[2] {
+            for y in low[1]..=high[1] {
+                if let Some((s, e)) = self.row(low[0], high[0], y, z) {
+                    for k in s..e {
+                        two.offer(distance2(&p, &self.sorted[k]), self.ids[k] as usize);
+                    }
+                }
             }
-        });
-        two.within(r2)
+        }
+        two.within(r * r)
     }
 }
 
