@@ -9,12 +9,19 @@
 //!   re-evaluate; stop when fitness and RMSE both change by less than the
 //!   criteria or after `max_iteration` updates.
 //!
-//! Estimators: point-to-point (closed form, Kabsch/Umeyama), point-to-plane
-//! (Gauss-Newton on (p − q)·n_q), and colored ICP (Park, Zhou, Koltun,
-//! "Colored Point Cloud Registration Revisited", ICCV 2017): a joint
-//! objective of the point-to-plane term and the difference between the
-//! source intensity and the target's intensity extrapolated along its
-//! tangent-plane colour gradient, weighted λ and 1 − λ. Robust kernels
+//! Estimators:
+//! - point-to-point (closed form, Kabsch/Umeyama);
+//! - point-to-plane (Gauss-Newton on (p − q)·n_q);
+//! - colored ICP (Park, Zhou, Koltun, "Colored Point Cloud Registration
+//!   Revisited", ICCV 2017): a joint objective of the point-to-plane term
+//!   and the difference between the source intensity and the target's
+//!   intensity extrapolated along its tangent-plane colour gradient,
+//!   weighted λ and 1 − λ;
+//! - generalized ICP (Segal, Haehnel, Thrun, RSS 2009), plane to plane as
+//!   Open3D runs it: the residual p − q weighted by (C_q + R C_p Rᵀ)^(−1/2),
+//!   each C the point's tangent plane with variance ε along its normal.
+//!
+//! Robust kernels
 //! reweight residuals (iteratively reweighted least squares). Sums are
 //! reduced in a fixed order, so results do not depend on thread timing.
 
@@ -91,6 +98,12 @@ pub enum Estimator {
     Colored {
         lambda_geometric: f64,
     },
+    /// Generalized ICP (Segal, Haehnel, Thrun, "Generalized-ICP", RSS 2009),
+    /// plane to plane: each point's covariance is its tangent plane, variance
+    /// 1 along it and `epsilon` (Open3D default 1e-3) along the normal.
+    Generalized {
+        epsilon: f64,
+    },
 }
 
 impl Estimator {
@@ -99,11 +112,13 @@ impl Estimator {
             Estimator::PointToPoint => "icp",
             Estimator::PointToPlane => "plane",
             Estimator::Colored { .. } => "colored",
+            Estimator::Generalized { .. } => "gicp",
         }
     }
     pub const COLORED: Estimator = Estimator::Colored {
         lambda_geometric: 0.968,
     };
+    pub const GENERALIZED: Estimator = Estimator::Generalized { epsilon: 1e-3 };
 }
 
 /// Result of a registration (Open3D's `RegistrationResult`).
@@ -527,13 +542,14 @@ impl<'a> Matcher<'a> {
     }
 
     /// The correspondences of the source moved by `pose`, chunk by chunk in
-    /// source order: `add` sums each into its chunk's `empty()`. Exactly the
-    /// pairs a fresh nearest-point search would give.
+    /// source order: `add` sums each (with the pose's rotation) into its
+    /// chunk's `empty()`. Exactly the pairs a fresh nearest-point search
+    /// would give.
     fn pass<A: Send>(
         &mut self,
         pose: &Pose,
         empty: impl Fn() -> A + Sync,
-        add: impl Fn(&mut A, &Pair) + Sync,
+        add: impl Fn(&mut A, &Pair, &Matrix3<f64>) + Sync,
     ) -> Vec<Found<A>> {
         let rotation = *pose.rotation.to_rotation_matrix().matrix();
         let translation = pose.translation.vector;
@@ -613,7 +629,7 @@ impl<'a> Matcher<'a> {
                         };
                         found.count += 1;
                         found.distance2 += pair.distance2;
-                        add(&mut found.sums, &pair);
+                        add(&mut found.sums, &pair, &rotation);
                     }
                 }
                 found
@@ -913,6 +929,18 @@ pub fn icp(
             estimator.name()
         )));
     }
+    if let Estimator::Generalized { epsilon } = estimator {
+        if !source.has_normals() {
+            return Err(RegisterError::Invalid(
+                "generalized ICP needs source normals too; estimate them first".into(),
+            ));
+        }
+        if !(epsilon > 0.0 && epsilon < 1.0) {
+            return Err(RegisterError::Invalid(format!(
+                "generalized ICP's epsilon must be in (0, 1), got {epsilon}"
+            )));
+        }
+    }
     let gradients = match estimator {
         Estimator::Colored { lambda_geometric } => {
             if !source.has_colors() || !target.cloud.has_colors() {
@@ -937,7 +965,7 @@ pub fn icp(
             init,
             criteria,
             CrossCovariance::default,
-            |sums, pair| sums.add(&pair.at, &tc.points[pair.target]),
+            |sums, pair, _| sums.add(&pair.at, &tc.points[pair.target]),
             CrossCovariance::merge,
             CrossCovariance::solve,
         ),
@@ -946,7 +974,7 @@ pub fn icp(
             init,
             criteria,
             NormalEquations::default,
-            |sums, pair| {
+            |sums, pair, _| {
                 let (p, q, n) = (pair.at, tc.points[pair.target], tc.normals[pair.target]);
                 let r = (p - q).dot(&n);
                 let w = kernel.weight(r).sqrt();
@@ -963,7 +991,7 @@ pub fn icp(
                 init,
                 criteria,
                 NormalEquations::default,
-                |sums, pair| {
+                |sums, pair, _| {
                     let (s, j) = (pair.at, pair.target);
                     let (q, n, d) = (tc.points[j], tc.normals[j], gradients[j]);
                     let rg = (s - q).dot(&n);
@@ -989,8 +1017,85 @@ pub fn icp(
                 NormalEquations::solve,
             )
         }
+        Estimator::Generalized { epsilon } => {
+            // Each point's plane, by its normal; the source's turn with it.
+            let source_axes: Vec<Vector3<f64>> =
+                source.normals.iter().map(covariance_axis).collect();
+            let target_axes: Vec<Vector3<f64>> = tc.normals.iter().map(covariance_axis).collect();
+            let inverse_root = PlaneCovariances::new(epsilon);
+            iterate(
+                &mut matcher,
+                init,
+                criteria,
+                NormalEquations::default,
+                |sums, pair, rotation| {
+                    let (p, q) = (pair.at, tc.points[pair.target]);
+                    let w = inverse_root.of_sum(
+                        &target_axes[pair.target],
+                        &(rotation * source_axes[pair.source]),
+                    );
+                    // W·(p − q) and W·[−[p]× | I], row by row.
+                    let r = w * (p - q);
+                    for row in 0..3 {
+                        let wr = w.row(row).transpose();
+                        let c = p.coords.cross(&wr);
+                        let weight = kernel.weight(r[row]).sqrt();
+                        sums.add(
+                            &(Vector6::new(c.x, c.y, c.z, wr.x, wr.y, wr.z) * weight),
+                            r[row] * weight,
+                        );
+                    }
+                },
+                NormalEquations::merge,
+                NormalEquations::solve,
+            )
+        }
     };
     Ok(registration)
+}
+
+/// The axis of a point's plane covariance: its (unit) normal, as Open3D
+/// builds it, including its choice of the x axis for normals within about
+/// 8° of −x (its rotation taking x onto the normal is the identity there),
+/// so that results compare one to one.
+fn covariance_axis(normal: &Vector3<f64>) -> Vector3<f64> {
+    if normal.x < -0.99 {
+        Vector3::x()
+    } else {
+        normal.normalize()
+    }
+}
+
+/// Generalized ICP's weight W = (C_target + C_source)^(−1/2) for plane
+/// covariances C = ε a aᵀ + (I − a aᵀ) = I − k a aᵀ, k = 1 − ε, in closed
+/// form: with a and b the two axes and c = a·b, M = 2I − k(a aᵀ + b bᵀ) has
+/// the eigenvalue 2 across both axes and 2 − k(1 ± c) along a ± b, so
+/// W = I/√2 + h(1 + c)(a + b)(a + b)ᵀ + h(1 − c)(a − b)(a − b)ᵀ with
+/// h(x) = (λ^(−1/2) − 2^(−1/2)) / (2x), λ = 2 − kx, written without the
+/// cancellation at x → 0. (Open3D takes a Schur-based matrix square root of
+/// the inverse per correspondence; the values agree to rounding.)
+struct PlaneCovariances {
+    k: f64,
+}
+
+impl PlaneCovariances {
+    fn new(epsilon: f64) -> Self {
+        PlaneCovariances { k: 1.0 - epsilon }
+    }
+
+    fn of_sum(&self, a: &Vector3<f64>, b: &Vector3<f64>) -> Matrix3<f64> {
+        let k = self.k;
+        let root2 = std::f64::consts::SQRT_2;
+        let h = |x: f64| {
+            let root = (2.0 - k * x).sqrt();
+            k / (2.0 * root2 * root * (root2 + root))
+        };
+        let c = a.dot(b);
+        let (plus, minus) = (a + b, a - b);
+        Matrix3::from_diagonal_element(std::f64::consts::FRAC_1_SQRT_2)
+            + plus * plus.transpose() * h(1.0 + c)
+            + minus * minus.transpose() * h(1.0 - c)
+    }
 }
 
 /// ICP's loop, as Open3D runs it: the correspondences of the source at
@@ -1002,7 +1107,7 @@ fn iterate<A: Send>(
     init: &Pose,
     criteria: &Criteria,
     empty: impl Fn() -> A + Sync,
-    add: impl Fn(&mut A, &Pair) + Sync,
+    add: impl Fn(&mut A, &Pair, &Matrix3<f64>) + Sync,
     merge: impl Fn(&mut A, A),
     solve: impl Fn(&A) -> Pose,
 ) -> Registration {
@@ -1248,7 +1353,7 @@ mod tests {
                     UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 3.0 * size),
                 );
                 let found: Vec<(usize, usize, f64)> = matcher
-                    .pass(&pose, Vec::new, |pairs, pair| {
+                    .pass(&pose, Vec::new, |pairs, pair, _| {
                         pairs.push((pair.source, pair.target, pair.distance2))
                     })
                     .into_iter()
@@ -1305,6 +1410,7 @@ mod tests {
                 Estimator::PointToPoint,
                 Estimator::PointToPlane,
                 Estimator::COLORED,
+                Estimator::GENERALIZED,
             ] {
                 let (r, a, d) = icp_from_identity(&source, &tt, 0.02, est, &truth);
                 assert!(
@@ -1314,6 +1420,49 @@ mod tests {
                     d
                 );
                 assert!(r.fitness > 0.999 && r.inlier_rmse < 1e-5, "{est:?}: {r:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn plane_covariance_weight_is_the_inverse_square_root_of_the_sum() {
+        // Against an eigendecomposition of C_a + C_b, for random planes and
+        // for nearly parallel and nearly opposite ones (the closed form's
+        // h(x) at x → 0).
+        let mut rng = ChaCha8Rng::seed_from_u64(21);
+        let mut unit = || {
+            Vector3::new(
+                rng.random::<f64>() - 0.5,
+                rng.random::<f64>() - 0.5,
+                rng.random::<f64>() - 0.5,
+            )
+            .normalize()
+        };
+        let mut pairs: Vec<(Vector3<f64>, Vector3<f64>)> =
+            (0..50).map(|_| (unit(), unit())).collect();
+        let a = unit();
+        let tilt = unit() * 1e-9;
+        pairs.extend([
+            (a, a),
+            (a, -a),
+            (a, (a + tilt).normalize()),
+            (a, (tilt - a).normalize()),
+        ]);
+        for epsilon in [1e-3, 0.3] {
+            let weight = PlaneCovariances::new(epsilon);
+            let plane =
+                |n: &Vector3<f64>| Matrix3::identity() - n * n.transpose() * (1.0 - epsilon);
+            for (a, b) in &pairs {
+                let eigen = (plane(a) + plane(b)).symmetric_eigen();
+                let expected = eigen.eigenvectors
+                    * Matrix3::from_diagonal(&eigen.eigenvalues.map(|l| 1.0 / l.sqrt()))
+                    * eigen.eigenvectors.transpose();
+                let w = weight.of_sum(a, b);
+                assert!(
+                    (w - expected).norm() < 1e-9 * expected.norm(),
+                    "ε {epsilon}, a·b {}: {w} vs {expected}",
+                    a.dot(b)
+                );
             }
         }
     }
@@ -1384,6 +1533,31 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(err.contains("colours"), "{err}");
+        // Generalized ICP needs the source's planes too.
+        let err = icp(
+            &grey,
+            &tn,
+            0.1,
+            &Pose::identity(),
+            Estimator::GENERALIZED,
+            Kernel::L2,
+            &crit,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("source normals"), "{err}");
+        let err = icp(
+            &with_normals,
+            &tn,
+            0.1,
+            &Pose::identity(),
+            Estimator::Generalized { epsilon: 0.0 },
+            Kernel::L2,
+            &crit,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("epsilon"), "{err}");
         let empty = PointCloud::default();
         assert!(
             icp(
@@ -1447,35 +1621,42 @@ mod tests {
             max_iteration: 60,
             ..Criteria::default()
         };
-        let robust = icp(
-            &source,
-            &tt,
-            0.03,
-            &Pose::identity(),
-            Estimator::PointToPlane,
-            Kernel::Tukey(0.003),
-            &crit,
-        )
-        .unwrap();
-        let plain = icp(
-            &source,
-            &tt,
-            0.03,
-            &Pose::identity(),
-            Estimator::PointToPlane,
-            Kernel::L2,
-            &crit,
-        )
-        .unwrap();
-        let err = |r: &Registration| {
-            omniscan_core::geometry::pose_difference(&r.transformation, &truth).1
-        };
-        assert!(err(&robust) < 2e-4, "{}", err(&robust));
-        assert!(
-            err(&robust) < err(&plain) / 3.0,
-            "{} vs {}",
-            err(&robust),
-            err(&plain)
-        );
+        // Generalized ICP's residuals along the normal are scaled by about
+        // 1/√(2ε): its kernel's width is too.
+        for (estimator, width) in [
+            (Estimator::PointToPlane, 0.003),
+            (Estimator::GENERALIZED, 0.003 / (2.0 * 1e-3f64).sqrt()),
+        ] {
+            let robust = icp(
+                &source,
+                &tt,
+                0.03,
+                &Pose::identity(),
+                estimator,
+                Kernel::Tukey(width),
+                &crit,
+            )
+            .unwrap();
+            let plain = icp(
+                &source,
+                &tt,
+                0.03,
+                &Pose::identity(),
+                estimator,
+                Kernel::L2,
+                &crit,
+            )
+            .unwrap();
+            let err = |r: &Registration| {
+                omniscan_core::geometry::pose_difference(&r.transformation, &truth).1
+            };
+            assert!(err(&robust) < 2e-4, "{estimator:?}: {}", err(&robust));
+            assert!(
+                err(&robust) < err(&plain) / 3.0,
+                "{estimator:?}: {} vs {}",
+                err(&robust),
+                err(&plain)
+            );
+        }
     }
 }

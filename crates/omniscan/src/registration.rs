@@ -31,6 +31,8 @@ pub enum Method {
     Plane,
     /// Colored ICP (needs colours on both clouds).
     Colored,
+    /// Generalized ICP, plane to plane (Segal et al. 2009; Open3D's epsilon 1e-3).
+    Gicp,
     /// The paper's rule: ICP and colored ICP from the initial transform, the better fitness wins.
     Auto,
     /// FPFH features, TEASER++-style and RANSAC hypotheses, refined by ICP; no initial transform needed.
@@ -108,16 +110,23 @@ pub fn align(args: AlignArgs) -> Result<()> {
     };
     let start = Instant::now();
     let (method, registration, candidates): (String, Registration, Value) = match args.method {
-        Method::Icp | Method::Plane | Method::Colored => {
+        Method::Icp | Method::Plane | Method::Colored | Method::Gicp => {
             let estimator = match args.method {
                 Method::Icp => Estimator::PointToPoint,
                 Method::Plane => Estimator::PointToPlane,
+                Method::Gicp => Estimator::GENERALIZED,
                 _ => Estimator::COLORED,
             };
             let t = if matches!(estimator, Estimator::PointToPoint) {
                 target.clone()
             } else {
                 with_normals(&target)
+            };
+            // Generalized ICP reads the source's planes too.
+            let source = if matches!(estimator, Estimator::Generalized { .. }) {
+                std::borrow::Cow::Owned(with_normals(&source))
+            } else {
+                std::borrow::Cow::Borrowed(&source)
             };
             let r = icp(
                 &source,
@@ -256,9 +265,11 @@ def timed(f, runs=d["runs"]):
     return sorted(ts)[len(ts) // 2], out
 res = {}
 crit = reg.ICPConvergenceCriteria(1e-6, 1e-6, d["iterations"])
-for name, est in [("colored", reg.TransformationEstimationForColoredICP()), ("plane", reg.TransformationEstimationPointToPlane()), ("icp", reg.TransformationEstimationPointToPoint())]:
+for name, est in [("colored", reg.TransformationEstimationForColoredICP()), ("plane", reg.TransformationEstimationPointToPlane()), ("icp", reg.TransformationEstimationPointToPoint()), ("gicp", reg.TransformationEstimationForGeneralizedICP())]:
     if name == "colored":
         f = lambda: reg.registration_colored_icp(src, tgt, d["max_distance"], np.eye(4), est, crit)
+    elif name == "gicp":
+        f = lambda: reg.registration_generalized_icp(src, tgt, d["max_distance"], np.eye(4), est, crit)
     else:
         f = lambda: reg.registration_icp(src, tgt, d["max_distance"], np.eye(4), est, crit)
     t, r = timed(f)
@@ -311,6 +322,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         ("colored", Estimator::COLORED),
         ("plane", Estimator::PointToPlane),
         ("icp", Estimator::PointToPoint),
+        ("gicp", Estimator::GENERALIZED),
     ] {
         let crit = Criteria {
             max_iteration: iterations,
@@ -394,7 +406,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         }
         let o3d: Value = serde_json::from_slice(&out.stdout).context("Open3D baseline output")?;
         let mut table = Vec::new();
-        for name in ["colored", "plane", "icp", "fpfh"] {
+        for name in ["colored", "plane", "icp", "gicp", "fpfh"] {
             let ours_t = ours[name]["seconds"].as_f64().unwrap();
             let theirs_t = o3d[name]["seconds"].as_f64().unwrap();
             let mut row = json!({"method": name, "omniscan_s": ours_t, "open3d_s": theirs_t, "speedup": theirs_t / ours_t});
@@ -521,7 +533,7 @@ fn print_bench(report: &Value) {
         "frag_115 halves, 10°/1 cm perturbation, {} iterations:",
         report["frag_115_local"]["iterations"]
     );
-    for name in ["colored", "colored_multiscale", "plane", "icp"] {
+    for name in ["colored", "colored_multiscale", "plane", "icp", "gicp"] {
         let r = &local[name];
         println!(
             "  {name:18} {:.3} s  fitness {:.4}  rotation error {:.4}°  translation error {:.2} mm",

@@ -234,7 +234,7 @@ fn align_recovers_a_known_transform_and_reports_open3d_style_fields() {
     };
     write_patch(&tmp.path().join("target.ply"), &|p| p, true);
     write_patch(&tmp.path().join("source.ply"), &inverse, true);
-    for method in ["plane", "colored", "auto", "global"] {
+    for method in ["plane", "colored", "gicp", "auto", "global"] {
         let out = tmp.path().join(format!("{method}.json"));
         let o = omniscan(&[
             "align",
