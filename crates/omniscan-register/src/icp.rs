@@ -1504,60 +1504,39 @@ mod tests {
         let c = surface(100, 3);
         let tt = Target::new(&c);
         let crit = Criteria::default();
-        let err = icp(
-            &c,
-            &tt,
-            0.1,
-            &Pose::identity(),
-            Estimator::PointToPlane,
-            Kernel::L2,
-            &crit,
-        )
-        .unwrap_err()
-        .to_string();
-        assert!(err.contains("normals"), "{err}");
+        let error_of = |source: &PointCloud, target: &Target, estimator: Estimator| {
+            icp(
+                source,
+                target,
+                0.1,
+                &Pose::identity(),
+                estimator,
+                Kernel::L2,
+                &crit,
+            )
+            .unwrap_err()
+            .to_string()
+        };
         let mut with_normals = c.clone();
         crate::preprocess::estimate_normals(&mut with_normals, 0.02, 30);
         let mut grey = c.clone();
         grey.colors.clear();
         let tn = Target::new(&with_normals);
-        let err = icp(
-            &grey,
-            &tn,
-            0.1,
-            &Pose::identity(),
-            Estimator::COLORED,
-            Kernel::L2,
-            &crit,
-        )
-        .unwrap_err()
-        .to_string();
-        assert!(err.contains("colours"), "{err}");
-        // Generalized ICP needs the source's planes too.
-        let err = icp(
-            &grey,
-            &tn,
-            0.1,
-            &Pose::identity(),
-            Estimator::GENERALIZED,
-            Kernel::L2,
-            &crit,
-        )
-        .unwrap_err()
-        .to_string();
-        assert!(err.contains("source normals"), "{err}");
-        let err = icp(
-            &with_normals,
-            &tn,
-            0.1,
-            &Pose::identity(),
-            Estimator::Generalized { epsilon: 0.0 },
-            Kernel::L2,
-            &crit,
-        )
-        .unwrap_err()
-        .to_string();
-        assert!(err.contains("epsilon"), "{err}");
+        for (source, target, estimator, expected) in [
+            (&c, &tt, Estimator::PointToPlane, "normals"),
+            (&grey, &tn, Estimator::COLORED, "colours"),
+            // Generalized ICP needs the source's planes too.
+            (&grey, &tn, Estimator::GENERALIZED, "source normals"),
+            (
+                &with_normals,
+                &tn,
+                Estimator::Generalized { epsilon: 0.0 },
+                "epsilon",
+            ),
+        ] {
+            let err = error_of(source, target, estimator);
+            assert!(err.contains(expected), "{estimator:?}: {err}");
+        }
         let empty = PointCloud::default();
         assert!(
             icp(
