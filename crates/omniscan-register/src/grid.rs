@@ -56,6 +56,29 @@ thread_local! {
     static LAST_KTH: std::cell::Cell<f64> = const { std::cell::Cell::new(0.0) };
 }
 
+/// A query's nearest points as far as a grid is sure of them: `points`,
+/// (index, squared distance) nearest first, are the query's nearest; when
+/// fewer than the `asked` many, they are every point within `reach` of it.
+pub struct Nearest<'a> {
+    pub points: &'a [(usize, f64)],
+    pub asked: usize,
+    pub reach: f64,
+}
+
+impl Nearest<'_> {
+    /// The `k` nearest, if the grid is sure of that many.
+    pub fn first(&self, k: usize) -> Option<&[(usize, f64)]> {
+        self.points.get(..k)
+    }
+
+    /// Open3D's hybrid answer: the nearest within `radius`, at most as many
+    /// as were asked for, if the grid is sure of them.
+    pub fn within(&self, radius: f64) -> Option<&[(usize, f64)]> {
+        let inside = self.points.partition_point(|n| n.1 <= radius * radius);
+        (self.points.len() == self.asked || radius <= self.reach).then(|| &self.points[..inside])
+    }
+}
+
 /// Points bucketed into cubic cells; see the module documentation.
 #[derive(Clone)]
 pub struct Grid {
@@ -413,19 +436,12 @@ impl Grid {
         })
     }
 
-    /// For every point `i`, `f(i, neighbours)` with its `k` nearest points
-    /// (itself included), nearest first, or `f(i, None)` where the grid
-    /// cannot be sure of them (fewer than `k` points in the block, or the
-    /// k-th farther than the block reaches): ask a k-d tree for those.
-    pub fn knn_map<T: Send>(
-        &self,
-        k: usize,
-        f: impl Fn(usize, Option<&[(usize, f64)]>) -> T + Sync,
-    ) -> Vec<T> {
+    /// For every point `i`, `f(i, nearest)` with its `k` nearest points
+    /// (itself included), nearest first, as far as the grid is sure of
+    /// them: where fewer than `k` lie within the block's reach, every point
+    /// within it (see [`Nearest`]); ask a k-d tree for more.
+    pub fn knn_map<T: Send>(&self, k: usize, f: impl Fn(usize, Nearest<'_>) -> T + Sync) -> Vec<T> {
         self.each_point(|i, _, cand, reach, found| {
-            if k == 0 || cand.ids.len() < k {
-                return f(i, None);
-            }
             // Neighbouring queries (one cell's, in turn on one thread) have
             // about the same k-th distance: the candidates within a little
             // more than the last one's hold this query's k nearest if there
@@ -439,14 +455,20 @@ impl Grid {
             if guess >= reach || found.len() < k {
                 // Only points within reach can be among a certain answer.
                 cand.within(reach * reach, found);
-                if found.len() < k {
-                    return f(i, None);
-                }
             }
             keep_nearest(found, k);
             found.sort_unstable_by(by_distance);
-            LAST_KTH.set(found[k - 1].1.sqrt());
-            f(i, Some(&found[..]))
+            if found.len() == k && k > 0 {
+                LAST_KTH.set(found[k - 1].1.sqrt());
+            }
+            f(
+                i,
+                Nearest {
+                    points: found,
+                    asked: k,
+                    reach,
+                },
+            )
         })
     }
 
@@ -631,7 +653,7 @@ mod tests {
         let points = cloud(3000, 1);
         let grid = Grid::new(&points, 0.08);
         let hybrid = grid.hybrid_map(0.07, 12, |_, n| n.to_vec());
-        let knn = grid.knn_map(9, |_, n| n.map(<[_]>::to_vec));
+        let knn = grid.knn_map(9, |_, n| n.first(9).map(<[_]>::to_vec));
         let mut sure = 0;
         for (i, p) in points.iter().enumerate() {
             let all = brute(&points, p);
@@ -709,7 +731,7 @@ mod tests {
         let grid = Grid::new(&far, 1e-6);
         assert!(grid.cell() > 1e-6);
         assert_eq!(
-            grid.knn_map(1, |_, n| n.map(<[_]>::to_vec))[1],
+            grid.knn_map(1, |_, n| n.first(1).map(<[_]>::to_vec))[1],
             Some(vec![(1, 0.0)])
         );
     }
