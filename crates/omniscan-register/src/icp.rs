@@ -34,7 +34,7 @@ use serde::Serialize;
 
 use std::borrow::Cow;
 
-use crate::grid::Grid;
+use crate::grid::{Grid, Nearest};
 use crate::neighbors::Neighbors;
 use crate::{PointCloud, RegisterError};
 use omniscan_core::Pose;
@@ -267,26 +267,29 @@ impl<'a> Target<'a> {
     }
 
     /// Point `i`'s entry of the neighbour graph, from its `GRAPH_K` nearest
-    /// (or the whole cloud's points, if fewer), nearest first; without them
-    /// the k-d tree finds them.
-    fn neighbor_list(&self, i: usize, nearest: Option<&[(usize, f64)]>) -> NeighborList {
+    /// (or the whole cloud's points, if fewer), nearest first, as a grid
+    /// found them (where it found fewer within its reach, those, covering
+    /// that reach); without a grid's answer the k-d tree finds them.
+    fn neighbor_list(&self, i: usize, nearest: Option<&Nearest>) -> NeighborList {
         let k = GRAPH_K.min(self.cloud.len());
         let pts = &self.cloud.points;
         let tree;
-        let found = match nearest {
-            Some(found) => &found[..k.min(found.len())],
+        // The list, and the distance within which it holds every point.
+        let (found, covers) = match nearest.map(|n| (n.first(k), n)) {
+            Some((Some(found), _)) => (found, found.last().map_or(0.0, |x| x.1).sqrt()),
+            // Fewer than k within the grid's reach: all of those.
+            Some((None, n)) => (n.points, n.reach),
             None => {
                 tree = self.neighbors().knn(&pts[i], k);
-                &tree[..]
+                (&tree[..], tree.last().map_or(0.0, |x| x.1).sqrt())
             }
         };
         // With every point in the list, nothing lies outside it.
         let reach = if k < GRAPH_K {
             f32::INFINITY
         } else {
-            let reach = found.last().map_or(0.0, |x| x.1).sqrt();
-            let rounded = reach as f32;
-            if rounded as f64 > reach {
+            let rounded = covers as f32;
+            if rounded as f64 > covers {
                 rounded.next_down()
             } else {
                 rounded
@@ -311,7 +314,7 @@ impl<'a> Target<'a> {
             let lists = match grid {
                 Some(grid) => {
                     let k = GRAPH_K.min(self.cloud.len());
-                    grid.knn_map(k, |i, nearest| self.neighbor_list(i, nearest.first(k)))
+                    grid.knn_map(k, |i, nearest| self.neighbor_list(i, Some(&nearest)))
                 }
                 None => (0..self.cloud.len())
                     .into_par_iter()
@@ -889,10 +892,11 @@ pub fn color_gradients(target: &Target, max_distance: f64) -> Vec<Vector3<f64>> 
             let (gradients, lists) = grid
                 .knn_map(k, |i, nearest| {
                     // The block reaches at least the gradients' radius, so
-                    // the grid answers them; only a list of fewer than
-                    // GRAPH_K within reach leaves the graph's entry to the
-                    // k-d tree (on `frag_115`, about 6% of points fell back
-                    // to it for both when the grid answered only with 30).
+                    // the grid answers them, and the graph's lists, without
+                    // the k-d tree: on `frag_115`'s target half 701 of
+                    // 32,097 points have fewer than 30 points within the
+                    // block's reach, and they made the tree's build part of
+                    // every first colored ICP on a target.
                     let tree;
                     let within = match nearest.within(radius) {
                         Some(within) => within,
@@ -901,11 +905,7 @@ pub fn color_gradients(target: &Target, max_distance: f64) -> Vec<Vector3<f64>> 
                             &tree[..]
                         }
                     };
-                    let graph_k = GRAPH_K.min(cloud.len());
-                    (
-                        gradient(i, within),
-                        target.neighbor_list(i, nearest.first(graph_k)),
-                    )
+                    (gradient(i, within), target.neighbor_list(i, Some(&nearest)))
                 })
                 .into_iter()
                 .unzip();
@@ -1248,7 +1248,20 @@ mod tests {
 
     #[test]
     fn gradients_pass_builds_the_same_graph_and_gradients_as_the_tree() {
-        let cloud = surface_with_normals(3000, 5);
+        // A surface, and a cluster of six points half a metre off it: fewer
+        // than GRAPH_K points lie within the grid's reach of those.
+        let mut cloud = surface(3000, 5);
+        let cluster: Vec<usize> = (0..6).map(|m| cloud.len() + m).collect();
+        for m in 0..6 {
+            let a = m as f64;
+            cloud.points.push(Point3::new(
+                0.003 * a.cos(),
+                0.003 * a.sin(),
+                0.5 + 0.001 * a,
+            ));
+            cloud.colors.push([0.2, 0.1 * a as f32, 0.5]);
+        }
+        crate::preprocess::estimate_normals(&mut cloud, 0.01, 30);
         let max_distance = 0.01;
         // Colored ICP first: the graph comes from the gradients' lists.
         let shared = Target::new(&cloud);
@@ -1259,13 +1272,25 @@ mod tests {
         let graph = alone.graph(alone.grid(2.0 * max_distance).as_deref());
         // Both against the k-d tree, point by point.
         let radius = 2.0 * max_distance;
-        for i in (0..cloud.len()).step_by(7) {
+        for i in (0..cloud.len()).step_by(7).chain(cluster.iter().copied()) {
             let tree = shared.neighbors().knn(&cloud.points[i], GRAPH_K);
             let ids: Vec<u32> = tree.iter().map(|n| n.0 as u32).collect();
             for lists in [&shared.graph.get().unwrap().lists, &graph.lists] {
-                assert_eq!(lists[i].ids[..], ids[..], "neighbours of point {i}");
-                let reach = tree[GRAPH_K - 1].1.sqrt();
-                assert!(lists[i].reach as f64 <= reach && lists[i].reach.next_up() as f64 > reach);
+                let list = &lists[i];
+                if cluster.contains(&i) {
+                    // Its own six, nearest first, the last repeated, and a
+                    // reach past them but short of the surface.
+                    assert_eq!(list.ids[..6], ids[..6], "neighbours of point {i}");
+                    assert!(list.ids[6..].iter().all(|&id| id == ids[5]));
+                    assert!(
+                        list.reach as f64 >= tree[5].1.sqrt()
+                            && (list.reach as f64) < tree[6].1.sqrt()
+                    );
+                } else {
+                    assert_eq!(list.ids[..], ids[..], "neighbours of point {i}");
+                    let reach = tree[GRAPH_K - 1].1.sqrt();
+                    assert!(list.reach as f64 <= reach && list.reach.next_up() as f64 > reach);
+                }
             }
             let hybrid = shared
                 .neighbors()
