@@ -270,18 +270,21 @@ impl<'a> Target<'a> {
     /// (or the whole cloud's points, if fewer), nearest first, as a grid
     /// found them (where it found fewer within its reach, those, covering
     /// that reach); without a grid's answer the k-d tree finds them.
-    fn neighbor_list(&self, i: usize, nearest: Option<&Nearest>) -> NeighborList {
+    fn neighbor_list(&self, i: usize, nearest: Option<&mut Nearest>) -> NeighborList {
         let k = GRAPH_K.min(self.cloud.len());
         let pts = &self.cloud.points;
         let tree;
+        let farthest = |found: &[(usize, f64)]| found.iter().fold(0.0f64, |m, x| m.max(x.1)).sqrt();
         // The list, and the distance within which it holds every point.
-        let (found, covers) = match nearest.map(|n| (n.first(k), n)) {
-            Some((Some(found), _)) => (found, found.last().map_or(0.0, |x| x.1).sqrt()),
-            // Fewer than k within the grid's reach: all of those.
-            Some((None, n)) => (n.points, n.reach),
+        let (found, covers) = match nearest {
+            Some(n) if n.points().len() < k => (n.points(), n.reach),
+            Some(n) => {
+                let found = n.first(k).unwrap_or_default();
+                (found, farthest(found))
+            }
             None => {
                 tree = self.neighbors().knn(&pts[i], k);
-                (&tree[..], tree.last().map_or(0.0, |x| x.1).sqrt())
+                (&tree[..], farthest(&tree))
             }
         };
         // With every point in the list, nothing lies outside it.
@@ -295,18 +298,18 @@ impl<'a> Target<'a> {
                 rounded
             }
         };
-        // Short lists repeat their last entry; the point itself stays
-        // first so a walk can stay where it is.
-        let id = |m: usize| {
-            found
-                .get(m)
-                .or(found.last())
-                .map_or(i as u32, |x| x.0 as u32)
-        };
-        NeighborList {
-            ids: std::array::from_fn(id),
-            reach,
+        // The point itself first, so a walk can stay where it is; short
+        // lists repeat their last entry.
+        let mut ids = [i as u32; GRAPH_K];
+        let others = found.iter().filter(|x| x.0 != i).map(|x| x.0 as u32);
+        let mut filled = 1;
+        for (slot, id) in ids.iter_mut().skip(1).zip(others) {
+            *slot = id;
+            filled += 1;
         }
+        let last = ids[filled - 1];
+        ids[filled..].fill(last);
+        NeighborList { ids, reach }
     }
 
     fn graph(&self, grid: Option<&Grid>) -> &NeighborGraph {
@@ -314,7 +317,9 @@ impl<'a> Target<'a> {
             let lists = match grid {
                 Some(grid) => {
                     let k = GRAPH_K.min(self.cloud.len());
-                    grid.knn_map(k, |i, nearest| self.neighbor_list(i, Some(&nearest)))
+                    grid.knn_map(k, |i, mut nearest| {
+                        self.neighbor_list(i, Some(&mut nearest))
+                    })
                 }
                 None => (0..self.cloud.len())
                     .into_par_iter()
@@ -863,7 +868,7 @@ pub fn color_gradients(target: &Target, max_distance: f64) -> Vec<Vector3<f64>> 
         }
         let mut ata = Matrix3::zeros();
         let mut atb = Vector3::zeros();
-        for &(j, _) in nbrs.iter().skip(1) {
+        for &(j, _) in nbrs.iter().filter(|n| n.0 != i) {
             let q = cloud.points[j];
             let proj = q - n * (q - p).dot(&n);
             let a = proj - p;
@@ -890,22 +895,21 @@ pub fn color_gradients(target: &Target, max_distance: f64) -> Vec<Vector3<f64>> 
         Some(grid) if target.graph.get().is_none() => {
             let k = GRADIENT_NN.min(cloud.len());
             let (gradients, lists) = grid
-                .knn_map(k, |i, nearest| {
+                .knn_map(k, |i, mut nearest| {
                     // The block reaches at least the gradients' radius, so
                     // the grid answers them, and the graph's lists, without
                     // the k-d tree: on `frag_115`'s target half 701 of
                     // 32,097 points have fewer than 30 points within the
                     // block's reach, and they made the tree's build part of
                     // every first colored ICP on a target.
-                    let tree;
-                    let within = match nearest.within(radius) {
-                        Some(within) => within,
+                    let gradient = match nearest.within(radius) {
+                        Some(within) => gradient(i, within),
                         None => {
-                            tree = target.neighbors().hybrid(&cloud.points[i], radius, k);
-                            &tree[..]
+                            let tree = target.neighbors().hybrid(&cloud.points[i], radius, k);
+                            gradient(i, &tree)
                         }
                     };
-                    (gradient(i, within), target.neighbor_list(i, Some(&nearest)))
+                    (gradient, target.neighbor_list(i, Some(&mut nearest)))
                 })
                 .into_iter()
                 .unzip();
@@ -1276,18 +1280,26 @@ mod tests {
             let tree = shared.neighbors().knn(&cloud.points[i], GRAPH_K);
             let ids: Vec<u32> = tree.iter().map(|n| n.0 as u32).collect();
             for lists in [&shared.graph.get().unwrap().lists, &graph.lists] {
+                // The point itself first, the others in any order.
                 let list = &lists[i];
+                assert_eq!(list.ids[0] as usize, i);
+                let mut listed = list.ids.to_vec();
+                listed.sort_unstable();
+                listed.dedup();
                 if cluster.contains(&i) {
-                    // Its own six, nearest first, the last repeated, and a
-                    // reach past them but short of the surface.
-                    assert_eq!(list.ids[..6], ids[..6], "neighbours of point {i}");
-                    assert!(list.ids[6..].iter().all(|&id| id == ids[5]));
+                    // Its own six, and a reach past them but short of the
+                    // surface.
+                    let mut own: Vec<u32> = ids[..6].to_vec();
+                    own.sort_unstable();
+                    assert_eq!(listed, own, "neighbours of point {i}");
                     assert!(
                         list.reach as f64 >= tree[5].1.sqrt()
                             && (list.reach as f64) < tree[6].1.sqrt()
                     );
                 } else {
-                    assert_eq!(list.ids[..], ids[..], "neighbours of point {i}");
+                    let mut nearest = ids.clone();
+                    nearest.sort_unstable();
+                    assert_eq!(listed, nearest, "neighbours of point {i}");
                     let reach = tree[GRAPH_K - 1].1.sqrt();
                     assert!(list.reach as f64 <= reach && list.reach.next_up() as f64 > reach);
                 }
