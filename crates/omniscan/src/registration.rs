@@ -247,7 +247,7 @@ fn median_of<T>(runs: usize, mut f: impl FnMut() -> Result<T>) -> Result<(f64, T
 }
 
 /// Timed calls per method, on both sides.
-const TIMED_RUNS: usize = 5;
+const TIMED_RUNS: usize = 11;
 
 const OPEN3D_SCRIPT: &str = r#"
 import json, sys, time
