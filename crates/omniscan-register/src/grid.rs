@@ -11,8 +11,10 @@
 //! that cell's 3x3x3 block, so all points of one cell share one candidate
 //! list: it is gathered once per cell and every query in the cell scans it
 //! with plain distance arithmetic. The answers are exact (ties aside); a k
-//! nearest query that may reach beyond the block says so and the caller asks
-//! the k-d tree instead.
+//! nearest query whose k-th may lie beyond the block answers with what it is
+//! sure of (every point within the block's reach) and a caller that needs
+//! more asks the k-d tree. A single query for the nearest two (ICP's fresh
+//! searches) reads only the cells its ball reaches.
 //!
 //! Written here because the crates we use answer one query at a time
 //! (kiddo's batch queries still search the tree once per point); the k-d
@@ -356,30 +358,11 @@ impl Grid {
             .fold(f64::INFINITY, f64::min)
     }
 
-    /// Runs `per_query(query index, position, candidates, reach, scratch)`
-    /// for every query, the queries of one cell sharing that cell's
-    /// candidates (measured to the query), and returns the results in the
-    /// queries' order. `reach`: nothing nearer than it lies outside the block.
-    fn each_query<T: Send>(
-        &self,
-        queries: &[[f64; 3]],
-        per_query: impl Fn(usize, &[f64; 3], &Candidates, f64, &mut Vec<(usize, f64)>) -> T + Sync,
-    ) -> Vec<T> {
-        let mut keyed: Vec<(u64, u32)> = queries
-            .iter()
-            .enumerate()
-            .map(|(i, q)| (self.key_of_query(q), i as u32))
-            .collect();
-        keyed.par_sort_unstable();
-        let values = self.grouped(queries, &keyed, per_query);
-        in_order(
-            values.into_iter().zip(keyed.iter().map(|k| k.1)),
-            queries.len(),
-        )
-    }
-
-    /// [`Grid::each_query`] over the grid's own points (already in cell
-    /// order), results by original index.
+    /// Runs `per_point(index, position, candidates, reach, scratch)` for
+    /// every point of the grid, the points of one cell sharing that cell's
+    /// candidates (measured to the point), and returns the results by the
+    /// points' original index. `reach`: nothing nearer than it lies outside
+    /// the block.
     fn each_point<T: Send>(
         &self,
         per_point: impl Fn(usize, &[f64; 3], &Candidates, f64, &mut Vec<(usize, f64)>) -> T + Sync,
@@ -396,7 +379,7 @@ impl Grid {
         )
     }
 
-    /// The work of [`Grid::each_query`] on queries sorted by cell key
+    /// The work of [`Grid::each_point`] on queries sorted by cell key
     /// (`keyed`: key, query index): results in `keyed`'s order.
     fn grouped<T: Send>(
         &self,
@@ -492,24 +475,6 @@ impl Grid {
                     reach,
                 },
             )
-        })
-    }
-
-    /// For each query, the nearest and second-nearest points within `radius`
-    /// (at most [`Grid::cell`]), as [`Grid::nearest_two`] answers them one by one.
-    pub fn nearest_two_all(
-        &self,
-        queries: &[Point3<f64>],
-        radius: f64,
-    ) -> Vec<(Option<(usize, f64)>, f64)> {
-        let r2 = radius.min(self.cell).powi(2);
-        let queries: Vec<[f64; 3]> = queries.iter().map(|q| [q.x, q.y, q.z]).collect();
-        self.each_query(&queries, |_, _, cand, _, _| {
-            let mut two = NearestTwo::default();
-            for (&d, &id) in cand.d2.iter().zip(&cand.ids) {
-                two.offer(d, id as usize);
-            }
-            two.within(r2)
         })
     }
 
@@ -724,21 +689,23 @@ mod tests {
             })
             .chain([Point3::new(50.0, -80.0, 3.0), Point3::new(-1.02, 0.0, 0.0)])
             .collect();
-        let batch = grid.nearest_two_all(&queries, 0.05);
-        for (trial, q) in queries.iter().enumerate() {
-            let all = brute(&points, q);
-            let (first, second) = grid.nearest_two(q, 0.05);
-            assert_eq!(batch[trial], (first, second), "batched query {trial}");
-            if all[0].1 <= 0.0025 {
-                assert_eq!(first, Some(all[0]));
-                let s = if all[1].1 <= 0.0025 {
-                    all[1].1
+        // The whole block, and balls that reach only some of its cells.
+        for radius in [0.05, 0.035, 0.02, 0.004] {
+            let r2 = radius * radius;
+            for (trial, q) in queries.iter().enumerate() {
+                let all = brute(&points, q);
+                let (first, second) = grid.nearest_two(q, radius);
+                if all[0].1 <= r2 {
+                    assert_eq!(first, Some(all[0]), "query {trial} within {radius}");
+                    let s = if all[1].1 <= r2 {
+                        all[1].1
+                    } else {
+                        f64::INFINITY
+                    };
+                    assert_eq!(second, s, "query {trial} within {radius}");
                 } else {
-                    f64::INFINITY
-                };
-                assert_eq!(second, s);
-            } else {
-                assert_eq!(first, None);
+                    assert_eq!(first, None, "query {trial} within {radius}");
+                }
             }
         }
     }
