@@ -440,9 +440,9 @@ impl Grid {
     }
 
     /// For every point `i`, `f(i, nearest)` with its `k` nearest points
-    /// (itself included), nearest first, as far as the grid is sure of
-    /// them: where fewer than `k` lie within the block's reach, every point
-    /// within it (see [`Nearest`]); ask a k-d tree for more.
+    /// (itself included, in no particular order), as far as the grid is
+    /// sure of them: where fewer than `k` lie within the block's reach,
+    /// every point within it (see [`Nearest`]); ask a k-d tree for more.
     pub fn knn_map<T: Send>(&self, k: usize, f: impl Fn(usize, Nearest<'_>) -> T + Sync) -> Vec<T> {
         self.each_point(|i, _, cand, reach, found| {
             // Neighbouring queries (one cell's, in turn on one thread) have
