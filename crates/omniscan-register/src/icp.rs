@@ -966,6 +966,12 @@ pub fn icp(
         }
         _ => Vec::new(),
     };
+    // The passes move points by the rotation's matrix, `evaluate` and
+    // callers by its quaternion: they agree when that has unit length.
+    let init = &Pose::from_parts(
+        init.translation,
+        UnitQuaternion::new_normalize(init.rotation.into_inner()),
+    );
     let tc = target.cloud;
     let mut matcher = Matcher::new(&source.points, target, max_distance);
     let registration = match estimator {
@@ -1537,6 +1543,42 @@ mod tests {
                     a.dot(b)
                 );
             }
+        }
+    }
+
+    #[test]
+    fn a_start_pose_off_unit_length_is_used_as_its_rotation() {
+        // A quaternion 1e-6 off unit length (nalgebra trusts it): the
+        // reported fitness and RMSE are those of the transform returned.
+        let target = surface_with_normals(3000, 14);
+        let tt = Target::new(&target);
+        let truth = Pose::new(
+            Vector3::new(0.002, -0.001, 0.003),
+            Vector3::new(0.01, 0.02, -0.015),
+        );
+        let mut source = target.transformed(&truth.inverse());
+        let mut rng = ChaCha8Rng::seed_from_u64(15);
+        for p in &mut source.points {
+            p.z += 0.001 * (rng.random::<f64>() - 0.5);
+        }
+        let off = UnitQuaternion::new_unchecked(
+            UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 0.01).into_inner() * (1.0 + 1e-6),
+        );
+        let start = Pose::from_parts(Translation3::identity(), off);
+        for estimator in [Estimator::PointToPoint, Estimator::PointToPlane] {
+            let criteria = Criteria {
+                max_iteration: 3,
+                ..Criteria::default()
+            };
+            let r = icp(&source, &tt, 0.02, &start, estimator, Kernel::L2, &criteria).unwrap();
+            let e = evaluate(&source, &tt, 0.02, &r.transformation);
+            assert_eq!(r.fitness, e.fitness, "{estimator:?}");
+            assert!(
+                (r.inlier_rmse - e.inlier_rmse).abs() < 1e-12 * e.inlier_rmse,
+                "{estimator:?}: {} vs {}",
+                r.inlier_rmse,
+                e.inlier_rmse
+            );
         }
     }
 
