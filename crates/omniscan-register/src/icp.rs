@@ -642,15 +642,16 @@ impl<'a> Matcher<'a> {
     }
 }
 
-fn score(n_source: usize, corr: &[(usize, usize, f64)]) -> (f64, f64) {
-    if corr.is_empty() {
-        return (0.0, 0.0);
+/// Open3D's fitness and inlier RMSE from the number of correspondences
+/// and the sum of their squared distances.
+fn score(n_source: usize, count: usize, distance2: f64) -> (f64, f64) {
+    match count {
+        0 => (0.0, 0.0),
+        count => (
+            count as f64 / n_source as f64,
+            (distance2 / count as f64).sqrt(),
+        ),
     }
-    let sum: f64 = corr.iter().map(|c| c.2).sum();
-    (
-        corr.len() as f64 / n_source as f64,
-        (sum / corr.len() as f64).sqrt(),
-    )
 }
 
 /// Fitness and RMSE of `source` moved by `transformation` against `target`
@@ -674,7 +675,8 @@ pub fn evaluate(
                 .map(|(j, d2)| (i, j, d2))
         })
         .collect();
-    let (fitness, inlier_rmse) = score(source.len(), &corr);
+    let sum: f64 = corr.iter().map(|c| c.2).sum();
+    let (fitness, inlier_rmse) = score(source.len(), corr.len(), sum);
     Registration {
         transformation: *transformation,
         fitness,
@@ -1142,11 +1144,7 @@ fn iterate<A: Send>(
             total.distance2 += found.distance2;
             merge(&mut total.sums, found.sums);
         }
-        let fitness = total.count as f64 / n_source as f64;
-        let rmse = match total.count {
-            0 => 0.0,
-            count => (total.distance2 / count as f64).sqrt(),
-        };
+        let (fitness, rmse) = score(n_source, total.count, total.distance2);
         (total, fitness, rmse)
     };
     let mut transformation = *init;
