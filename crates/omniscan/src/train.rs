@@ -123,6 +123,12 @@ pub fn run(args: TrainArgs) -> Result<()> {
     {
         bail!("--grad-threshold must be a positive number, got {threshold}");
     }
+    if !(args.position_lr.is_finite() && args.position_lr >= 0.0) {
+        bail!(
+            "--position-lr must be a finite number, 0 or more, got {}",
+            args.position_lr
+        );
+    }
     let all = load_views(&args.capture, args.arm, args.downscale)?;
     let (train_views, test_views) =
         split_held_out_from(all, args.hold_out_every, args.hold_out_first);
