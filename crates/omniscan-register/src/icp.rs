@@ -663,25 +663,25 @@ pub fn evaluate(
     transformation: &Pose,
 ) -> Registration {
     let max2 = max_distance * max_distance;
-    let corr: Vec<(usize, usize, f64)> = source
+    // The squared distances, summed in source order so the RMSE is the same on every run.
+    let distances2: Vec<f64> = source
         .points
         .par_iter()
-        .enumerate()
-        .filter_map(|(i, p)| {
+        .filter_map(|p| {
             target
                 .neighbors()
                 .nearest(&(transformation * p))
-                .filter(|r| r.1 <= max2)
-                .map(|(j, d2)| (i, j, d2))
+                .map(|(_, d2)| d2)
+                .filter(|&d2| d2 <= max2)
         })
         .collect();
-    let sum: f64 = corr.iter().map(|c| c.2).sum();
-    let (fitness, inlier_rmse) = score(source.len(), corr.len(), sum);
+    let sum: f64 = distances2.iter().sum();
+    let (fitness, inlier_rmse) = score(source.len(), distances2.len(), sum);
     Registration {
         transformation: *transformation,
         fitness,
         inlier_rmse,
-        correspondences: corr.len(),
+        correspondences: distances2.len(),
         iterations: 0,
     }
 }
