@@ -230,26 +230,23 @@ fn add_noise(cloud: &mut PointCloud, sigma: f64, seed: u64) {
     }
 }
 
-/// The median time of `runs` calls of `f` after one untimed call (the first
-/// call of a method pays for fresh memory pages: 15-25% more on `frag_115`,
-/// for Open3D and omniscan alike), and the last call's result.
-fn median_of<T>(runs: usize, mut f: impl FnMut() -> Result<T>) -> Result<(f64, T)> {
-    f()?;
-    let mut times = Vec::new();
-    let mut last = None;
-    for _ in 0..runs {
-        let t = Instant::now();
-        last = Some(f()?);
-        times.push(t.elapsed().as_secs_f64());
-    }
-    times.sort_by(f64::total_cmp);
-    Ok((times[times.len() / 2], last.unwrap()))
-}
-
 /// Timed calls per method, on both sides.
 const TIMED_RUNS: usize = 11;
 
-const OPEN3D_SCRIPT: &str = r#"
+/// The median of `values` (not empty).
+fn median(values: &[f64]) -> f64 {
+    let mut sorted = values.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    sorted[sorted.len() / 2]
+}
+
+/// Open3D's side of the benchmark: one Python process that reads the inputs
+/// once and then times one call per request line (a method's name), so that
+/// its calls can alternate with ours. On the shared 2-core VM the speed of
+/// the same binary drifts by a third within a minute; timing all of one side
+/// and then all of the other put that drift into the ratio (colored ICP's
+/// swung 2.4-2.8x between two runs minutes apart).
+const OPEN3D_SERVER: &str = r#"
 import json, sys, time
 import numpy as np
 import open3d as o3d
@@ -257,28 +254,111 @@ reg = o3d.pipelines.registration
 d = json.loads(sys.argv[1])
 src = o3d.io.read_point_cloud(d["source"]); tgt = o3d.io.read_point_cloud(d["target"])
 fp = o3d.io.read_point_cloud(d["fpfh_cloud"])
-def timed(f, runs=d["runs"]):
-    f()
-    ts = []; out = None
-    for _ in range(runs):
-        t = time.perf_counter(); out = f(); ts.append(time.perf_counter() - t)
-    return sorted(ts)[len(ts) // 2], out
-res = {}
 crit = reg.ICPConvergenceCriteria(1e-6, 1e-6, d["iterations"])
-for name, est in [("colored", reg.TransformationEstimationForColoredICP()), ("plane", reg.TransformationEstimationPointToPlane()), ("icp", reg.TransformationEstimationPointToPoint()), ("gicp", reg.TransformationEstimationForGeneralizedICP())]:
-    if name == "colored":
-        f = lambda: reg.registration_colored_icp(src, tgt, d["max_distance"], np.eye(4), est, crit)
-    elif name == "gicp":
-        f = lambda: reg.registration_generalized_icp(src, tgt, d["max_distance"], np.eye(4), est, crit)
-    else:
-        f = lambda: reg.registration_icp(src, tgt, d["max_distance"], np.eye(4), est, crit)
-    t, r = timed(f)
-    res[name] = {"seconds": t, "transform": np.asarray(r.transformation).tolist(), "fitness": r.fitness, "inlier_rmse": r.inlier_rmse}
 param = o3d.geometry.KDTreeSearchParamHybrid(radius=d["fpfh_radius"], max_nn=100)
-t, f = timed(lambda: reg.compute_fpfh_feature(fp, param))
-res["fpfh"] = {"seconds": t, "points": len(fp.points), "row_sum_mean": float(np.asarray(f.data).sum(axis=0).mean())}
-print(json.dumps(res))
+eye = np.eye(4)
+calls = {
+    "colored": lambda: reg.registration_colored_icp(src, tgt, d["max_distance"], eye, reg.TransformationEstimationForColoredICP(), crit),
+    "plane": lambda: reg.registration_icp(src, tgt, d["max_distance"], eye, reg.TransformationEstimationPointToPlane(), crit),
+    "icp": lambda: reg.registration_icp(src, tgt, d["max_distance"], eye, reg.TransformationEstimationPointToPoint(), crit),
+    "gicp": lambda: reg.registration_generalized_icp(src, tgt, d["max_distance"], eye, reg.TransformationEstimationForGeneralizedICP(), crit),
+    "fpfh": lambda: reg.compute_fpfh_feature(fp, param),
+}
+print("ready", flush=True)
+for line in sys.stdin:
+    name = line.strip()
+    t = time.perf_counter(); out = calls[name](); seconds = time.perf_counter() - t
+    if name == "fpfh":
+        res = {"seconds": seconds, "points": len(fp.points), "row_sum_mean": float(np.asarray(out.data).sum(axis=0).mean())}
+    else:
+        res = {"seconds": seconds, "transform": np.asarray(out.transformation).tolist(), "fitness": out.fitness, "inlier_rmse": out.inlier_rmse}
+    print(json.dumps(res), flush=True)
 "#;
+
+/// A running [`OPEN3D_SERVER`].
+struct Open3d {
+    child: std::process::Child,
+    requests: std::process::ChildStdin,
+    answers: std::io::BufReader<std::process::ChildStdout>,
+    python: PathBuf,
+}
+
+impl Open3d {
+    fn start(python: &Path, input: &Value) -> Result<Open3d> {
+        use std::process::{Command, Stdio};
+        let mut child = Command::new(python)
+            .arg("-c")
+            .arg(OPEN3D_SERVER)
+            .arg(input.to_string())
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .spawn()
+            .with_context(|| format!("cannot run {}", python.display()))?;
+        let requests = child.stdin.take().context("the Open3D baseline's input")?;
+        let answers = std::io::BufReader::new(
+            child
+                .stdout
+                .take()
+                .context("the Open3D baseline's output")?,
+        );
+        let mut server = Open3d {
+            child,
+            requests,
+            answers,
+            python: python.to_path_buf(),
+        };
+        let ready = server.read_line()?;
+        if ready.trim() != "ready" {
+            bail!(
+                "the Open3D baseline ({}) did not start: {ready}",
+                python.display()
+            );
+        }
+        Ok(server)
+    }
+
+    fn read_line(&mut self) -> Result<String> {
+        use std::io::BufRead;
+        let mut line = String::new();
+        if self.answers.read_line(&mut line)? == 0 {
+            let status = self.child.wait()?;
+            bail!(
+                "the Open3D baseline ({}) stopped ({status}); is open3d 0.20 installed for it? Its errors are above",
+                self.python.display()
+            );
+        }
+        Ok(line)
+    }
+
+    /// One timed call of `method` on Open3D's side: its seconds and results.
+    fn time(&mut self, method: &str) -> Result<Value> {
+        use std::io::Write;
+        writeln!(self.requests, "{method}")?;
+        self.requests.flush()?;
+        let line = self.read_line()?;
+        serde_json::from_str(&line).with_context(|| format!("the Open3D baseline's answer {line}"))
+    }
+}
+
+impl Drop for Open3d {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// The processor's name, for the report: a speed ratio belongs to the machine it was measured on.
+fn processor_name() -> String {
+    std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|info| {
+            info.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|name| name.trim().to_string())
+        })
+        .unwrap_or_else(|| std::env::consts::ARCH.to_string())
+}
 
 pub fn bench(args: BenchArgs) -> Result<()> {
     let mut report = serde_json::Map::new();
@@ -318,30 +398,104 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     let iterations = 30;
     let truth = perturb.inverse();
     let mut ours = serde_json::Map::new();
-    for (name, est) in [
+    // Both sides time each method in turn, one call each per round, in
+    // alternating order, after one untimed call each (the first call in a
+    // process pays for fresh memory pages: 15-25% more on `frag_115`, for
+    // Open3D and omniscan alike).
+    let mut open3d = match &args.open3d_python {
+        Some(py) => Some(Open3d::start(
+            py,
+            &json!({"source": src_path, "target": tgt_path, "fpfh_cloud": fp_path, "max_distance": max_distance, "iterations": iterations, "fpfh_radius": 5.0 * fpfh_voxel}),
+        )?),
+        None => None,
+    };
+    let crit = Criteria {
+        max_iteration: iterations,
+        ..Criteria::default()
+    };
+    let estimators = [
         ("colored", Estimator::COLORED),
         ("plane", Estimator::PointToPlane),
         ("icp", Estimator::PointToPoint),
         ("gicp", Estimator::GENERALIZED),
-    ] {
-        let crit = Criteria {
-            max_iteration: iterations,
-            ..Criteria::default()
-        };
-        // The target's search structures are built inside the timing, as Open3D builds its k-d tree inside each call.
-        let (t, r) = median_of(TIMED_RUNS, || {
-            Ok(icp(
-                &source,
-                &Target::new(&target),
-                max_distance,
-                &Pose::identity(),
-                est,
-                Kernel::L2,
-                &crit,
-            )?)
-        })?;
-        let (rot, trans) = pose_difference(&r.transformation, &truth);
-        ours.insert(name.into(), json!({"seconds": t, "fitness": r.fitness, "inlier_rmse": r.inlier_rmse, "rotation_error_deg": rot.to_degrees(), "translation_error_m": trans, "iterations": r.iterations, "transform": pose_to_rows(&r.transformation)}));
+    ];
+    // The target's search structures are built inside the timing, as Open3D builds its k-d tree inside each call.
+    let register = |est: Estimator| {
+        icp(
+            &source,
+            &Target::new(&target),
+            max_distance,
+            &Pose::identity(),
+            est,
+            Kernel::L2,
+            &crit,
+        )
+    };
+    let fpfh = || compute_fpfh(&fp_cloud, 5.0 * fpfh_voxel, 100);
+    let methods: Vec<&str> = estimators
+        .iter()
+        .map(|e| e.0)
+        .chain(std::iter::once("fpfh"))
+        .collect();
+    // One of our calls of `method`: its seconds, and its result as JSON.
+    let ours_once = |method: &str| -> Result<(f64, Value)> {
+        let t = Instant::now();
+        Ok(match estimators.iter().find(|e| e.0 == method) {
+            Some(&(_, est)) => {
+                let r = register(est)?;
+                let seconds = t.elapsed().as_secs_f64();
+                let (rot, trans) = pose_difference(&r.transformation, &truth);
+                (
+                    seconds,
+                    json!({"fitness": r.fitness, "inlier_rmse": r.inlier_rmse, "rotation_error_deg": rot.to_degrees(), "translation_error_m": trans, "iterations": r.iterations, "transform": pose_to_rows(&r.transformation)}),
+                )
+            }
+            None => {
+                let f = fpfh();
+                let seconds = t.elapsed().as_secs_f64();
+                (
+                    seconds,
+                    json!({"points": fp_cloud.len(), "row_sum_mean": f.iter().map(|r| r.iter().sum::<f32>() as f64).sum::<f64>() / f.len() as f64}),
+                )
+            }
+        })
+    };
+    let mut our_times: Vec<Vec<f64>> = vec![Vec::new(); methods.len()];
+    let mut their_times: Vec<Vec<f64>> = vec![Vec::new(); methods.len()];
+    let mut our_results = vec![Value::Null; methods.len()];
+    let mut their_results = vec![Value::Null; methods.len()];
+    for (m, method) in methods.iter().enumerate() {
+        our_results[m] = ours_once(method)?.1;
+        if let Some(o) = open3d.as_mut() {
+            their_results[m] = o.time(method)?;
+        }
+    }
+    for round in 0..TIMED_RUNS {
+        for (m, method) in methods.iter().enumerate() {
+            let mut ours_now = || -> Result<()> {
+                let (t, r) = ours_once(method)?;
+                our_times[m].push(t);
+                our_results[m] = r;
+                Ok(())
+            };
+            if round % 2 == 0 {
+                ours_now()?;
+            }
+            if let Some(o) = open3d.as_mut() {
+                let r = o.time(method)?;
+                their_times[m].push(r["seconds"].as_f64().context("Open3D's seconds")?);
+                their_results[m] = r;
+            }
+            if round % 2 == 1 {
+                ours_now()?;
+            }
+        }
+    }
+    drop(open3d);
+    for (m, method) in methods.iter().enumerate() {
+        let mut result = our_results[m].clone();
+        result["seconds"] = json!(median(&our_times[m]));
+        ours.insert(method.to_string(), result);
     }
     // The error depends on which points land in which half: repeat over splits.
     let mut split_errors = Vec::new();
@@ -358,74 +512,62 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             &Pose::identity(),
             Estimator::COLORED,
             Kernel::L2,
-            &Criteria {
-                max_iteration: iterations,
-                ..Criteria::default()
-            },
+            &crit,
         )?;
         let (rot, trans) = pose_difference(&r.transformation, &truth);
         split_errors.push((rot.to_degrees(), trans * 1e3));
     }
-    let mut rots: Vec<f64> = split_errors.iter().map(|e| e.0).collect();
-    let mut trans: Vec<f64> = split_errors.iter().map(|e| e.1).collect();
-    rots.sort_by(f64::total_cmp);
-    trans.sort_by(f64::total_cmp);
-    ours.insert("colored_over_splits".into(), json!({"splits": split_errors.len(), "median_rotation_error_deg": rots[rots.len() / 2], "max_rotation_error_deg": rots[rots.len() - 1], "median_translation_error_mm": trans[trans.len() / 2], "max_translation_error_mm": trans[trans.len() - 1]}));
+    let rots: Vec<f64> = split_errors.iter().map(|e| e.0).collect();
+    let trans: Vec<f64> = split_errors.iter().map(|e| e.1).collect();
+    let largest = |v: &[f64]| v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    ours.insert("colored_over_splits".into(), json!({"splits": split_errors.len(), "median_rotation_error_deg": median(&rots), "max_rotation_error_deg": largest(&rots), "median_translation_error_mm": median(&trans), "max_translation_error_mm": largest(&trans)}));
     // Open3D's tutorial schedule for colored ICP, scaled to this cloud's spacing.
     let voxels = [8.0 * spacing, 4.0 * spacing, 2.0 * spacing];
-    let (t, r) = median_of(TIMED_RUNS, || {
-        Ok(multiscale_colored_icp(
-            &source,
-            &target,
-            &Pose::identity(),
-            &voxels,
-            &[50, 30, 14],
-        )?)
-    })?;
+    let multiscale =
+        || multiscale_colored_icp(&source, &target, &Pose::identity(), &voxels, &[50, 30, 14]);
+    multiscale()?;
+    let mut times = Vec::new();
+    let mut last = None;
+    for _ in 0..TIMED_RUNS {
+        let t = Instant::now();
+        last = Some(multiscale()?);
+        times.push(t.elapsed().as_secs_f64());
+    }
+    let r = last.context("no multiscale run")?;
     let (rot, trans) = pose_difference(&r.transformation, &truth);
-    ours.insert("colored_multiscale".into(), json!({"seconds": t, "fitness": r.fitness, "inlier_rmse": r.inlier_rmse, "rotation_error_deg": rot.to_degrees(), "translation_error_m": trans, "voxels_m": voxels}));
-    let (t, f) = median_of(TIMED_RUNS, || {
-        Ok(compute_fpfh(&fp_cloud, 5.0 * fpfh_voxel, 100))
-    })?;
-    ours.insert("fpfh".into(), json!({"seconds": t, "points": fp_cloud.len(), "row_sum_mean": f.iter().map(|r| r.iter().sum::<f32>() as f64).sum::<f64>() / f.len() as f64}));
+    ours.insert("colored_multiscale".into(), json!({"seconds": median(&times), "fitness": r.fitness, "inlier_rmse": r.inlier_rmse, "rotation_error_deg": rot.to_degrees(), "translation_error_m": trans, "voxels_m": voxels}));
+    report.insert("processor".into(), json!(processor_name()));
     report.insert("frag_115_local".into(), json!({"points": [source.len(), target.len()], "spacing_m": spacing, "max_distance_m": max_distance, "iterations": iterations, "omniscan": ours}));
 
-    if let Some(py) = &args.open3d_python {
-        let input = json!({"source": src_path, "target": tgt_path, "fpfh_cloud": fp_path, "max_distance": max_distance, "iterations": iterations, "fpfh_radius": 5.0 * fpfh_voxel, "runs": TIMED_RUNS});
-        let out = std::process::Command::new(py)
-            .arg("-c")
-            .arg(OPEN3D_SCRIPT)
-            .arg(input.to_string())
-            .output()
-            .with_context(|| format!("cannot run {}", py.display()))?;
-        if !out.status.success() {
-            bail!(
-                "the Open3D baseline failed: {}",
-                String::from_utf8_lossy(&out.stderr)
-            );
-        }
-        let o3d: Value = serde_json::from_slice(&out.stdout).context("Open3D baseline output")?;
+    if args.open3d_python.is_some() {
         let mut table = Vec::new();
-        for name in ["colored", "plane", "icp", "gicp", "fpfh"] {
-            let ours_t = ours[name]["seconds"].as_f64().unwrap();
-            let theirs_t = o3d[name]["seconds"].as_f64().unwrap();
-            let mut row = json!({"method": name, "omniscan_s": ours_t, "open3d_s": theirs_t, "speedup": theirs_t / ours_t});
+        for (m, &name) in methods.iter().enumerate() {
+            let ours_t = ours[name]["seconds"].as_f64().unwrap_or(f64::NAN);
+            let theirs_t = median(&their_times[m]);
+            // Each round's ratio of two neighbouring calls: how far the machine's drift moved it.
+            let ratios: Vec<f64> = their_times[m]
+                .iter()
+                .zip(&our_times[m])
+                .map(|(theirs, ours)| theirs / ours)
+                .collect();
+            let mut row = json!({"method": name, "omniscan_s": ours_t, "open3d_s": theirs_t, "speedup": theirs_t / ours_t, "speedup_per_round": {"min": ratios.iter().copied().fold(f64::INFINITY, f64::min), "median": median(&ratios), "max": largest(&ratios)}});
+            let o3d = &their_results[m];
             if name != "fpfh" {
-                let m: [[f64; 4]; 4] = serde_json::from_value(o3d[name]["transform"].clone())?;
-                let theirs = pose_from_rows(&m)?;
+                let rows: [[f64; 4]; 4] = serde_json::from_value(o3d["transform"].clone())?;
+                let theirs = pose_from_rows(&rows)?;
                 let (rot, trans) = pose_difference(&theirs, &truth);
                 let ours_rows: [[f64; 4]; 4] =
                     serde_json::from_value(ours[name]["transform"].clone())?;
                 let (drot, dtrans) = pose_difference(&pose_from_rows(&ours_rows)?, &theirs);
                 row["open3d_rotation_error_deg"] = json!(rot.to_degrees());
                 row["open3d_translation_error_m"] = json!(trans);
-                row["open3d_fitness"] = o3d[name]["fitness"].clone();
+                row["open3d_fitness"] = o3d["fitness"].clone();
                 row["omniscan_fitness"] = ours[name]["fitness"].clone();
                 row["omniscan_rotation_error_deg"] = ours[name]["rotation_error_deg"].clone();
                 row["difference_to_open3d_deg"] = json!(drot.to_degrees());
                 row["difference_to_open3d_m"] = json!(dtrans);
             } else {
-                row["open3d_row_sum"] = o3d[name]["row_sum_mean"].clone();
+                row["open3d_row_sum"] = o3d["row_sum_mean"].clone();
                 row["omniscan_row_sum"] = ours[name]["row_sum_mean"].clone();
             }
             table.push(row);
@@ -560,19 +702,23 @@ fn print_bench(report: &Value) {
     match &report["versus_open3d"] {
         Value::Array(rows) => {
             println!(
-                "versus Open3D (same inputs, same run, median of {TIMED_RUNS} after one untimed call):"
+                "versus Open3D on {} (same inputs, same run; calls alternate, {TIMED_RUNS} rounds after one untimed call each; medians):",
+                report["processor"].as_str().unwrap_or("this machine")
             );
             println!(
-                "  {:8} {:>10} {:>10} {:>8}",
+                "  {:8} {:>10} {:>10} {:>8}  per round (min-max)",
                 "method", "omniscan s", "open3d s", "speedup"
             );
             for r in rows {
+                let round = &r["speedup_per_round"];
                 println!(
-                    "  {:8} {:>10.3} {:>10.3} {:>7.2}x",
+                    "  {:8} {:>10.3} {:>10.3} {:>7.2}x  {:.2}-{:.2}x",
                     r["method"].as_str().unwrap_or(""),
                     r["omniscan_s"].as_f64().unwrap_or(0.0),
                     r["open3d_s"].as_f64().unwrap_or(0.0),
-                    r["speedup"].as_f64().unwrap_or(0.0)
+                    r["speedup"].as_f64().unwrap_or(0.0),
+                    round["min"].as_f64().unwrap_or(0.0),
+                    round["max"].as_f64().unwrap_or(0.0)
                 );
             }
         }

@@ -220,6 +220,52 @@ fn write_patch(path: &Path, motion: &dyn Fn([f64; 3]) -> [f64; 3], colors: bool)
 }
 
 #[test]
+fn registration_bench_times_every_method_and_names_a_broken_baseline() {
+    let tmp = tempfile::tempdir().unwrap();
+    let frag = tmp.path().join("frag.ply");
+    write_patch(&frag, &|p| p, true);
+    let bench = |extra: &[&str]| {
+        let mut args = vec!["bench", "registration", "--frag", frag.to_str().unwrap()];
+        args.extend_from_slice(&["--trials", "0"]);
+        args.extend_from_slice(extra);
+        omniscan(&args)
+    };
+    let o = bench(&["--json"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!(report["processor"].as_str().is_some_and(|p| !p.is_empty()));
+    let local = &report["frag_115_local"]["omniscan"];
+    for method in [
+        "colored",
+        "plane",
+        "icp",
+        "gicp",
+        "fpfh",
+        "colored_multiscale",
+    ] {
+        let seconds = local[method]["seconds"].as_f64().unwrap();
+        assert!(seconds > 0.0 && seconds < 60.0, "{method}: {seconds} s");
+    }
+    // A 10° / 1 cm start on a wavy, coloured patch: colored ICP finds it.
+    assert!(local["colored"]["fitness"].as_f64().unwrap() > 0.99);
+    assert!(local["colored"]["rotation_error_deg"].as_f64().unwrap() < 0.5);
+    assert!(
+        report["versus_open3d"]
+            .as_str()
+            .unwrap()
+            .contains("--open3d-python")
+    );
+    // A baseline interpreter that exits at once is named, not waited on.
+    let o = bench(&["--open3d-python", "/bin/false"]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("/bin/false") && err.contains("open3d"),
+        "{err}"
+    );
+}
+
+#[test]
 fn align_recovers_a_known_transform_and_reports_open3d_style_fields() {
     let tmp = tempfile::tempdir().unwrap();
     // Source = target moved by the inverse of a small rotation about z and a shift.
