@@ -125,42 +125,48 @@ fn pcd_and_every_splat_model_load() {
     assert_eq!(n, 14);
 }
 
+/// Global registration of `trials` random rotations of each file's halves
+/// (paths under `data/`): the trials and the misses (error over 0.5°).
+fn global_misses(rng: &mut ChaCha8Rng, files: &[&str], trials: u64) -> (usize, Vec<String>) {
+    let mut count = 0;
+    let mut missed = Vec::new();
+    for file in files {
+        let cloud = read_cloud(&shared().join("data").join(file)).unwrap();
+        let (target, half) = halves(&cloud, 3);
+        for trial in 0..trials {
+            let truth = random_pose(rng, cloud.extent());
+            let source = half.transformed(&truth.inverse());
+            let settings = GlobalSettings {
+                seed: trial,
+                ..GlobalSettings::default()
+            };
+            let r = global_registration(&source, &target, &settings).unwrap();
+            let (rot, _) = pose_difference(&r.best.registration.transformation, &truth);
+            count += 1;
+            if rot.to_degrees() > 0.5 {
+                missed.push(format!("{file} trial {trial}: {:.2}°", rot.to_degrees()));
+            }
+        }
+    }
+    (count, missed)
+}
+
 #[test]
 #[ignore = "needs ../shared"]
 fn global_registration_of_real_halves() {
     let mut rng = ChaCha8Rng::seed_from_u64(21);
-    let mut good = 0;
-    let mut trials = 0;
-    for file in [
+    let files = [
         "registration/frag_115.ply",
         "real-splats/expo.ply",
         "real-splats/remote_merge.ply",
         "real-splats/garden_stake.ply",
-    ] {
-        let cloud = read_cloud(&shared().join("data").join(file)).unwrap();
-        let (target, half) = halves(&cloud, 3);
-        for trial in 0..2 {
-            let truth = random_pose(&mut rng, cloud.extent());
-            let source = half.transformed(&truth.inverse());
-            let r = global_registration(
-                &source,
-                &target,
-                &GlobalSettings {
-                    seed: trial,
-                    ..GlobalSettings::default()
-                },
-            )
-            .unwrap();
-            let (rot, _) = pose_difference(&r.best.registration.transformation, &truth);
-            trials += 1;
-            if rot.to_degrees() <= 0.5 {
-                good += 1;
-            } else {
-                eprintln!("{file} trial {trial}: {:.2}°", rot.to_degrees());
-            }
-        }
-    }
-    assert!(good >= trials - 1, "{good} of {trials} within 0.5°");
+    ];
+    let (trials, missed) = global_misses(&mut rng, &files, 2);
+    let good = trials - missed.len();
+    assert!(
+        good >= trials - 1,
+        "{good} of {trials} within 0.5°: {missed:?}"
+    );
 }
 
 /// Parts whose feature hypotheses land degrees off, or on a half-turned
@@ -170,26 +176,11 @@ fn global_registration_of_real_halves() {
 #[ignore = "needs ../shared"]
 fn global_registration_converges_from_hypotheses_degrees_off() {
     let mut rng = ChaCha8Rng::seed_from_u64(4);
-    let mut missed = Vec::new();
-    for file in ["postcard", "wine_opener", "l_bracket"] {
-        let path = shared()
-            .join("data/real-splats")
-            .join(format!("{file}.ply"));
-        let cloud = read_cloud(&path).unwrap();
-        let (target, half) = halves(&cloud, 3);
-        for trial in 0..10 {
-            let truth = random_pose(&mut rng, cloud.extent());
-            let source = half.transformed(&truth.inverse());
-            let settings = GlobalSettings {
-                seed: trial,
-                ..GlobalSettings::default()
-            };
-            let r = global_registration(&source, &target, &settings).unwrap();
-            let (rot, _) = pose_difference(&r.best.registration.transformation, &truth);
-            if rot.to_degrees() > 0.5 {
-                missed.push(format!("{file} trial {trial}: {:.2}°", rot.to_degrees()));
-            }
-        }
-    }
+    let files = [
+        "real-splats/postcard.ply",
+        "real-splats/wine_opener.ply",
+        "real-splats/l_bracket.ply",
+    ];
+    let (_, missed) = global_misses(&mut rng, &files, 10);
     assert!(missed.len() <= 1, "missed 0.5°: {missed:?}");
 }
