@@ -225,12 +225,17 @@ pub fn parse(bytes: &[u8]) -> std::result::Result<PlyFile, String> {
     })
 }
 
-fn empty_columns(e: &Element) -> Vec<Column> {
+/// Columns for `e`'s items, with room reserved for as many as a body of
+/// `body_len` bytes can hold (an item takes at least one byte in either
+/// encoding): the header's count comes from the file, and a damaged one
+/// asked for terabytes before the body was read.
+fn empty_columns(e: &Element, body_len: usize) -> Vec<Column> {
+    let room = e.count.min(body_len);
     e.properties
         .iter()
         .map(|p| match p.list_count {
-            None => Column::Scalar(Vec::with_capacity(e.count)),
-            Some(_) => Column::List(Vec::with_capacity(e.count)),
+            None => Column::Scalar(Vec::with_capacity(room)),
+            Some(_) => Column::List(Vec::with_capacity(room)),
         })
         .collect()
 }
@@ -239,8 +244,10 @@ fn read_ascii(body: &[u8], elements: &mut [Element]) -> std::result::Result<(), 
     let text = std::str::from_utf8(body).map_err(|_| "ASCII PLY body is not text")?;
     let mut tokens = text.split_ascii_whitespace();
     for e in elements.iter_mut() {
-        let mut columns = empty_columns(e);
-        for item in 0..e.count {
+        let mut columns = empty_columns(e, body.len());
+        // Items without properties hold nothing to read.
+        let items = if e.properties.is_empty() { 0 } else { e.count };
+        for item in 0..items {
             let mut next = |what: &str| -> std::result::Result<f64, String> {
                 let t = tokens.next().ok_or_else(|| {
                     format!(
@@ -307,7 +314,7 @@ fn read_binary(
 ) -> std::result::Result<(), String> {
     let mut at = 0usize;
     for e in elements.iter_mut() {
-        let mut columns = empty_columns(e);
+        let mut columns = empty_columns(e, body.len());
         let fixed: Option<usize> = e
             .properties
             .iter()
@@ -325,7 +332,8 @@ fn read_binary(
                 ));
             }
         }
-        for item in 0..e.count {
+        let items = if e.properties.is_empty() { 0 } else { e.count };
+        for item in 0..items {
             for (p, col) in e.properties.iter().zip(columns.iter_mut()) {
                 let mut take = |t: ScalarType| -> std::result::Result<f64, String> {
                     let n = t.size();
@@ -502,5 +510,26 @@ mod tests {
         );
         assert!(parse(b"hello").is_err());
         assert!(parse(b"ply\nformat weird 1.0\nend_header\n").is_err());
+    }
+
+    /// A damaged count must not be taken at its word: reserving room for
+    /// 10¹³ items aborted the process (an allocation failure, not an error)
+    /// before the body was read, and an element without properties looped
+    /// over its count.
+    #[test]
+    fn absurd_element_counts_are_errors_not_aborts() {
+        for format in ["ascii", "binary_little_endian"] {
+            let file = format!(
+                "ply\nformat {format} 1.0\nelement vertex 9999999999999\nproperty float x\nend_header\n1 2 3 4\n"
+            );
+            let message = parse(file.as_bytes()).unwrap_err();
+            assert!(
+                message.contains("ends early") || message.contains("truncated"),
+                "{format}: {message}"
+            );
+        }
+        let empty = b"ply\nformat ascii 1.0\nelement nothing 18446744073709551615\nend_header\n";
+        let ply = parse(empty).unwrap();
+        assert_eq!(ply.element("nothing").unwrap().columns.len(), 0);
     }
 }

@@ -521,8 +521,37 @@ fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
             "PCD header: FIELDS, SIZE, TYPE and COUNT differ in length".into(),
         ));
     }
+    if sizes.contains(&0) || counts.contains(&0) {
+        return Err(err("PCD header: a field of SIZE or COUNT 0".into()));
+    }
+    // Bytes per point (binary) and values per point, checked: the header's
+    // numbers come from the file.
+    let overflow = || err("PCD header: SIZE, COUNT or POINTS too large".into());
+    let stride = sizes
+        .iter()
+        .zip(&counts)
+        .try_fold(0usize, |s, (&a, &c)| a.checked_mul(c)?.checked_add(s))
+        .ok_or_else(overflow)?;
     // One value per (field, element); columns in field order.
     let width: usize = counts.iter().sum();
+    let body = &bytes[at..];
+    // What the body can hold bounds the header's point count before
+    // anything is allocated for it (a damaged POINTS line asked for
+    // terabytes). Binary points take `stride` bytes each (every value at
+    // least one); an ASCII value at least a digit and a separator; LZF
+    // expands at most 264 bytes out of every 3 in.
+    let needed = n.checked_mul(stride).ok_or_else(overflow)?;
+    let holds = match data_kind.as_str() {
+        "ascii" => body.len() / 2 + 1 >= n.saturating_mul(width),
+        "binary" => body.len() >= needed,
+        _ => body.len().saturating_mul(88) >= needed,
+    };
+    if !holds {
+        return Err(err(format!(
+            "file is truncated: {} bytes of {data_kind} data cannot hold the {n} points its header gives",
+            body.len()
+        )));
+    }
     let mut values = vec![0f64; n * width];
     let offsets: Vec<usize> = counts
         .iter()
@@ -545,7 +574,6 @@ fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
             _ => f64::NAN,
         }
     };
-    let body = &bytes[at..];
     match data_kind.as_str() {
         "ascii" => {
             let text =
@@ -571,14 +599,6 @@ fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
             }
         }
         "binary" => {
-            let stride: usize = sizes.iter().zip(&counts).map(|(s, c)| s * c).sum();
-            if body.len() < n * stride {
-                return Err(err(format!(
-                    "file is truncated: {n} points need {} bytes, {} remain",
-                    n * stride,
-                    body.len()
-                )));
-            }
             for i in 0..n {
                 let mut o = i * stride;
                 for f in 0..fields.len() {
@@ -596,6 +616,11 @@ fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
             }
             let compressed = u32::from_le_bytes(body[0..4].try_into().unwrap()) as usize;
             let raw = u32::from_le_bytes(body[4..8].try_into().unwrap()) as usize;
+            if raw != needed {
+                return Err(err(format!(
+                    "compressed PCD body unpacks to {raw} bytes, its {n} points need {needed}"
+                )));
+            }
             let data = body
                 .get(8..8 + compressed)
                 .ok_or_else(|| err("compressed PCD body is truncated".into()))?;
@@ -693,7 +718,7 @@ mod tests {
             )
         };
         let ascii = header("ascii") + "1 2 3 16711680\n4 5 6 255\n";
-        std::fs::write(dir.path().join("a.pcd"), ascii).unwrap();
+        std::fs::write(dir.path().join("a.pcd"), &ascii).unwrap();
         let a = read_cloud(&dir.path().join("a.pcd")).unwrap();
         assert_eq!(a.points[1], Point3::new(4.0, 5.0, 6.0));
         assert_eq!(a.colors[0], [1.0, 0.0, 0.0]);
@@ -739,6 +764,47 @@ mod tests {
                 .to_string()
                 .contains("truncated")
         );
+        // A damaged POINTS line: the reader reserved a value for each point
+        // it claims (50 TB here) before reading any, and the allocation
+        // failure aborted the process. Every encoding now checks the body
+        // can hold them first.
+        for (kind, body) in [
+            ("ascii", &ascii.as_bytes()[header("ascii").len()..]),
+            ("binary", &bin[header("binary").len()..]),
+            (
+                "binary_compressed",
+                &cb[header("binary_compressed").len()..],
+            ),
+        ] {
+            let mut file = header(kind)
+                .replace("POINTS 2", "POINTS 1562500000000")
+                .into_bytes();
+            file.extend_from_slice(body);
+            std::fs::write(dir.path().join("p.pcd"), &file).unwrap();
+            let message = read_cloud(&dir.path().join("p.pcd"))
+                .unwrap_err()
+                .to_string();
+            assert!(message.contains("cannot hold"), "{kind}: {message}");
+        }
+        // Header numbers whose product overflows, or a field of no bytes.
+        for (from, to) in [
+            ("SIZE 4 4 4 4", "SIZE 4 4 4 9223372036854775807"),
+            ("SIZE 4 4 4 4", "SIZE 4 4 4 0"),
+        ] {
+            let mut file = header("binary").replace(from, to).into_bytes();
+            file.extend_from_slice(&bin[header("binary").len()..]);
+            std::fs::write(dir.path().join("s.pcd"), &file).unwrap();
+            assert!(read_cloud(&dir.path().join("s.pcd")).is_err(), "{to}");
+        }
+        // A compressed body whose stated unpacked size is not its points'.
+        let mut wrong = cb.clone();
+        let at = header("binary_compressed").len() + 4;
+        wrong[at..at + 4].copy_from_slice(&(raw.len() as u32 + 4).to_le_bytes());
+        std::fs::write(dir.path().join("w.pcd"), &wrong).unwrap();
+        let message = read_cloud(&dir.path().join("w.pcd"))
+            .unwrap_err()
+            .to_string();
+        assert!(message.contains("unpacks to"), "{message}");
     }
 
     #[test]
