@@ -339,6 +339,11 @@ pub struct UNet {
     pub layers: Vec<Conv>,
 }
 
+/// Bounds on a U-Net's working size (pixels a side) and channel counts,
+/// far above any use (the default works at 160x120 with 8, 16, 32 channels).
+const MAX_SIDE: usize = 4096;
+const MAX_CHANNELS: usize = 1024;
+
 impl UNet {
     /// A freshly initialised network (seeded).
     pub fn new(
@@ -354,6 +359,19 @@ impl UNet {
         {
             return Err(MaskError::Invalid(format!(
                 "the U-Net's working size must be multiples of 4 and at least 8, got {input_width}x{input_height}"
+            )));
+        }
+        // Sizes come from a network file's metadata too: a damaged one
+        // (input_height 2⁴⁰) made the first image's buffers abort the
+        // process on a failed allocation.
+        if input_width > MAX_SIDE || input_height > MAX_SIDE {
+            return Err(MaskError::Invalid(format!(
+                "the U-Net's working size is at most {MAX_SIDE} pixels a side, got {input_width}x{input_height}"
+            )));
+        }
+        if channels.iter().any(|&c| c == 0 || c > MAX_CHANNELS) {
+            return Err(MaskError::Invalid(format!(
+                "the U-Net's channel counts must be at least 1 and at most {MAX_CHANNELS}, got {channels:?}"
             )));
         }
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
@@ -1215,5 +1233,30 @@ mod tests {
         std::fs::write(&path, other).unwrap();
         let e = UNet::load(&path).unwrap_err().to_string();
         assert!(e.contains("not an omniscan gripper U-Net"), "{e}");
+        // Damaged sizes in the metadata: errors, before the first image's
+        // buffers (2⁴⁰ rows aborted the process on a failed allocation).
+        for (height, channels) in [("1099511627776", "4,8,8"), ("24", "4,8,100000000")] {
+            let metadata = [
+                ("format", FORMAT),
+                ("input_width", "32"),
+                ("input_height", height),
+                ("channels", channels),
+            ]
+            .map(|(k, v)| (k.to_string(), v.to_string()))
+            .into_iter()
+            .collect();
+            let file = safetensors::serialize(
+                Vec::<(String, safetensors::tensor::TensorView)>::new(),
+                Some(metadata),
+            )
+            .unwrap();
+            std::fs::write(&path, file).unwrap();
+            let e = UNet::load(&path).unwrap_err().to_string();
+            assert!(
+                e.contains("unet.safetensors") && e.contains("at most"),
+                "{e}"
+            );
+        }
+        assert!(UNet::new(32, 24, [4, 0, 8], 0).is_err());
     }
 }

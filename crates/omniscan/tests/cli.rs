@@ -719,6 +719,20 @@ fn mask_writes_masks_records_them_and_reports_iou_per_arm() {
     let first = &json["frames"][0];
     assert_eq!(first["object_mask_path"], "masks/object/left_000.png");
     assert!(capture.join("masks/gripper/left_000.png").is_file());
+    // Masks deleted to make them again: capture.json still names them, and
+    // the run makes the missing ones and keeps the rest.
+    std::fs::remove_file(capture.join("masks/gripper/left_000.png")).unwrap();
+    std::fs::remove_file(capture.join("masks/object/right_001.png")).unwrap();
+    let out = omniscan(&["mask", capture.to_str().unwrap(), "--json"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let again: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(again["masking"]["computed"], 2, "{again}");
+    assert_eq!(again["masking"]["resumed"], 10, "{again}");
+    assert!(capture.join("masks/gripper/left_000.png").is_file());
 
     let out = omniscan(&["mask", tmp.path().join("nowhere").to_str().unwrap()]);
     assert!(!out.status.success());
