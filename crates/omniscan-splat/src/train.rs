@@ -480,6 +480,16 @@ pub fn train_resumable(
         match start {
             Start::Fresh(mut s) => {
                 s.validate()?;
+                // The cap is a hard one: densification never exceeds it, so
+                // neither may the start (a 5000-splat start under a cap of
+                // 100 used to train on, and end with, 4664).
+                if config.max_splats == 0 || s.len() > config.max_splats {
+                    return Err(SplatError::Invalid(format!(
+                        "the starting model has {} splats and the cap (max_splats) is {}: start from fewer points or raise the cap",
+                        s.len(),
+                        config.max_splats
+                    )));
+                }
                 if mcmc {
                     crate::mcmc::prepare(&mut s);
                 }
@@ -909,6 +919,17 @@ pub fn split_held_out_from<T>(
     (train, held_out)
 }
 
+/// `downscale` as a factor: 0 is refused (it was taken as 1, so a typo
+/// trained at full size, four times the work of the default).
+fn downscale_factor(downscale: u32) -> Result<u32, SplatError> {
+    if downscale == 0 {
+        return Err(SplatError::Invalid(
+            "the downscale factor must be at least 1 (1: full size)".into(),
+        ));
+    }
+    Ok(downscale)
+}
+
 /// Training views from a capture: images, object masks and gripper masks
 /// (the frames' own masks, else the simulator's ground truth), cameras in the
 /// reconstruction frame of `set`, images shrunk by `downscale` (box filter).
@@ -918,7 +939,7 @@ pub fn views_from_capture(
     downscale: u32,
 ) -> Result<Vec<View>, SplatError> {
     use omniscan_core::image_io::{read_mask, read_rgb};
-    let f = downscale.max(1);
+    let f = downscale_factor(downscale)?;
     let k = capture.intrinsics();
     let (w, h) = (k.width / f, k.height / f);
     if w < 8 || h < 8 {
@@ -1134,7 +1155,7 @@ pub fn views_from_cameras_json(
     let frames = d["frames"]
         .as_array()
         .ok_or_else(|| SplatError::file(path, "no `frames` array"))?;
-    let f = downscale.max(1);
+    let f = downscale_factor(downscale)?;
     let mut views = Vec::new();
     for (i, fr) in frames.iter().enumerate() {
         let bad = |what: &str| SplatError::file(path, format!("frames[{i}]: {what}"));
@@ -1382,6 +1403,33 @@ mod tests {
         )
         .unwrap_err();
         assert!(err.to_string().contains("other settings"), "{err}");
+    }
+
+    /// The cap on the count holds from the first step: a start above it, or
+    /// a cap of 0, is refused rather than trained on.
+    #[test]
+    fn a_start_above_the_cap_is_refused() {
+        let (views, start) = problem();
+        for cap in [0, start.len() - 1] {
+            let config = TrainConfig {
+                max_splats: cap,
+                ..TrainConfig::with_steps(2)
+            };
+            let err = train(
+                &views,
+                start.clone(),
+                &config,
+                &Renderer::Cpu,
+                &mut |_, _, _| {},
+            )
+            .unwrap_err();
+            assert!(err.to_string().contains("the cap (max_splats)"), "{err}");
+        }
+        let config = TrainConfig {
+            max_splats: start.len(),
+            ..TrainConfig::with_steps(2)
+        };
+        assert!(train(&views, start, &config, &Renderer::Cpu, &mut |_, _, _| {}).is_ok());
     }
 
     /// MCMC training fits the views (its error falls well below the start's)

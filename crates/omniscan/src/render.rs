@@ -43,10 +43,26 @@ pub struct RenderArgs {
     pub backend: Backend,
 }
 
+/// The largest turntable image side, pixels.
+const MAX_SIDE: u32 = 16384;
+
 pub fn run(args: RenderArgs) -> Result<()> {
     let model = read_splats(&args.model)?;
     if args.background.len() != 3 {
         bail!("--background takes three numbers, e.g. 1,1,1");
+    }
+    if args.capture.is_none() {
+        if args.orbit == 0 {
+            bail!("--orbit must be at least 1 view");
+        }
+        // A mistyped size (10⁶ x 10⁶) rendered for minutes, then failed.
+        if !(1..=MAX_SIDE).contains(&args.width) || !(1..=MAX_SIDE).contains(&args.height) {
+            bail!(
+                "--width and --height must be 1 to {MAX_SIDE} pixels, got {}x{}",
+                args.width,
+                args.height
+            );
+        }
     }
     let cameras: Vec<(String, Camera<f32>)> = match &args.capture {
         Some(c) => {

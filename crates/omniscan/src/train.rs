@@ -129,6 +129,16 @@ pub fn run(args: TrainArgs) -> Result<()> {
             args.position_lr
         );
     }
+    if args.max_splats == 0 {
+        bail!("--max-splats must be at least 1");
+    }
+    if args.init.is_none() && !(1..=args.max_splats).contains(&args.initial_points) {
+        bail!(
+            "--initial-points must be 1 to --max-splats ({}), got {}",
+            args.max_splats,
+            args.initial_points
+        );
+    }
     let all = load_views(&args.capture, args.arm, args.downscale)?;
     let (train_views, test_views) =
         split_held_out_from(all, args.hold_out_every, args.hold_out_first);
@@ -185,6 +195,14 @@ pub fn run(args: TrainArgs) -> Result<()> {
                 } else {
                     vec![[0.5; 3]; points.len()]
                 };
+                if points.len() > args.max_splats {
+                    bail!(
+                        "--init {} has {} points, more than --max-splats {}: thin it (e.g. voxel-downsample it) or raise --max-splats",
+                        path.display(),
+                        points.len(),
+                        args.max_splats
+                    );
+                }
                 splats_from_points(&points, &colours, args.sh_degree)
                     .with_context(|| format!("initialising from {}", path.display()))?
             }

@@ -459,6 +459,20 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
             &["--densification", "mcmc", "--absgrad"][..],
             "MCMC does not use",
         ),
+        // The cap holds from the start, and a downscale of 0 is no size.
+        (&["--max-splats", "0"][..], "--max-splats must be"),
+        (
+            &["--max-splats", "100"][..],
+            "--initial-points must be 1 to",
+        ),
+        (
+            &["--init", model.to_str().unwrap(), "--max-splats", "10"][..],
+            "more than --max-splats 10",
+        ),
+        (
+            &["--downscale", "0"][..],
+            "downscale factor must be at least 1",
+        ),
     ] {
         let out = train_more(flags);
         assert!(!out.status.success());
@@ -603,6 +617,29 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
         String::from_utf8_lossy(&out.stderr)
     );
     assert!(renders.join("orbit_001.png").is_file());
+    // No views, or a mistyped size (it rendered 10¹² pixels for minutes).
+    for (flags, message) in [
+        (&["--orbit", "0"][..], "--orbit must be"),
+        (
+            &["--width", "1000000", "--height", "1000000"][..],
+            "1 to 16384 pixels",
+        ),
+    ] {
+        let mut a = vec![
+            "render",
+            model.to_str().unwrap(),
+            "--out",
+            renders.to_str().unwrap(),
+        ];
+        a.extend_from_slice(flags);
+        let out = omniscan(&a);
+        assert!(!out.status.success());
+        assert!(
+            String::from_utf8_lossy(&out.stderr).contains(message),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
 }
 
 #[test]
