@@ -67,10 +67,22 @@ pub struct PlannedPose {
     pub gripper_to_world: RigidTransform,
 }
 
+/// The most poses one arm's scan may have.
+const MAX_POSES_PER_ARM: u32 = 10_000;
+
 impl ScanPlanConfig {
     pub fn validate(&self) -> Result<(), String> {
         if self.wrist_angles == 0 || self.latitudes == 0 {
             return Err("the scan needs at least one wrist angle and one latitude".into());
+        }
+        // The paper's scan is 100 poses an arm; 10⁸ (a typo) ran the machine
+        // out of memory planning them.
+        let poses = self.wrist_angles.checked_mul(self.latitudes);
+        if poses.is_none_or(|n| n > MAX_POSES_PER_ARM) {
+            return Err(format!(
+                "{} wrist angles x {} latitudes is more than {MAX_POSES_PER_ARM} poses an arm",
+                self.wrist_angles, self.latitudes
+            ));
         }
         let lat_ok = |v: f64| v.is_finite() && v.abs() < std::f64::consts::FRAC_PI_2;
         if !lat_ok(self.latitude_min_rad) || !lat_ok(self.latitude_max_rad) {
@@ -79,9 +91,9 @@ impl ScanPlanConfig {
         if self.latitude_min_rad > self.latitude_max_rad {
             return Err("latitude_min must not exceed latitude_max".into());
         }
-        if !(self.camera_distance_m.is_finite() && self.camera_distance_m > 0.05) {
+        if !(self.camera_distance_m > 0.05 && self.camera_distance_m <= 10.0) {
             return Err(format!(
-                "camera distance {} m is too small",
+                "camera distance {} m is outside 0.05-10 m (an in-hand object 10 m away spans a few pixels)",
                 self.camera_distance_m
             ));
         }
@@ -208,6 +220,34 @@ mod tests {
         let lats: Vec<f64> = (0..5).map(|j| plan.latitude(j).to_degrees()).collect();
         for (got, want) in lats.iter().zip([-10.0, 10.0, 30.0, 50.0, 70.0]) {
             assert!((got - want).abs() < 1e-9, "{lats:?}");
+        }
+    }
+
+    #[test]
+    fn plans_out_of_range_are_errors() {
+        assert!(ScanPlanConfig::default().validate().is_ok());
+        let bad = [
+            ScanPlanConfig {
+                wrist_angles: 100_000,
+                latitudes: 1000,
+                ..Default::default()
+            },
+            ScanPlanConfig {
+                wrist_angles: u32::MAX,
+                latitudes: 2,
+                ..Default::default()
+            },
+            ScanPlanConfig {
+                camera_distance_m: f64::NAN,
+                ..Default::default()
+            },
+            ScanPlanConfig {
+                camera_distance_m: 1e9,
+                ..Default::default()
+            },
+        ];
+        for plan in bad {
+            assert!(plan.validate().is_err(), "{plan:?}");
         }
     }
 

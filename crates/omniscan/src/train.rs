@@ -293,13 +293,19 @@ pub fn run(args: TrainArgs) -> Result<()> {
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
+        // Without held-out views (--hold-out-every 0) there is nothing to
+        // score: say so rather than print NaN.
+        let scores = match (eval["psnr"].as_f64(), eval["psnr_masked"].as_f64()) {
+            (Some(psnr), Some(masked)) => {
+                format!("held-out views: PSNR {psnr:.2} dB, masked PSNR {masked:.2} dB")
+            }
+            _ => "no held-out views to score".to_string(),
+        };
         println!(
-            "wrote {} ({} splats) in {:.0} s; held-out views: PSNR {:.2} dB, masked PSNR {:.2} dB",
+            "wrote {} ({} splats) in {:.0} s; {scores}",
             args.out.display(),
             model.len(),
             start.elapsed().as_secs_f64(),
-            eval["psnr"].as_f64().unwrap_or(f64::NAN),
-            eval["psnr_masked"].as_f64().unwrap_or(f64::NAN)
         );
     }
     Ok(())
