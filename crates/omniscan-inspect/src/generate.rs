@@ -54,6 +54,19 @@ impl Default for CopySettings {
     }
 }
 
+/// The diagonal of the box around `model`'s centres, millimetres.
+fn span_mm(model: &Splats, units_per_metre: f64) -> f64 {
+    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+    for m in &model.means {
+        for a in 0..3 {
+            lo[a] = lo[a].min(m[a]);
+            hi[a] = hi[a].max(m[a]);
+        }
+    }
+    let d2: f64 = (0..3).map(|a| ((hi[a] - lo[a]) as f64).powi(2)).sum();
+    d2.sqrt() / units_per_metre * 1e3
+}
+
 fn check_units(units_per_metre: f64) -> Result<(), InspectError> {
     if units_per_metre.is_finite() && units_per_metre > 0.0 {
         Ok(())
@@ -73,6 +86,13 @@ pub fn good_copy(
 ) -> Result<(Splats, Pose), InspectError> {
     check_units(units_per_metre)?;
     model.validate()?;
+    let span = span_mm(model, units_per_metre);
+    let noise = settings.position_noise_mm;
+    if !(noise.is_finite() && noise >= 0.0 && noise <= span) {
+        return Err(InspectError::Invalid(format!(
+            "position noise must be 0 to the part's {span:.1} mm span, got {noise} mm"
+        )));
+    }
     let mut rng = ChaCha8Rng::seed_from_u64(settings.seed);
     let sigma = settings.position_noise_mm * 1e-3 * units_per_metre;
     let k = model.sh_coefficients();
@@ -279,9 +299,10 @@ pub fn plant_defect(
 ) -> Result<(Splats, PlantedDefect), InspectError> {
     check_units(units_per_metre)?;
     model.validate()?;
-    if !(size_mm.is_finite() && size_mm > 0.0) {
+    let span = span_mm(model, units_per_metre);
+    if !(size_mm.is_finite() && size_mm > 0.0 && size_mm <= span) {
         return Err(InspectError::Invalid(format!(
-            "defect size must be positive, got {size_mm} mm"
+            "defect size must be positive and at most the part's {span:.1} mm span, got {size_mm} mm"
         )));
     }
     let mut rng = ChaCha8Rng::seed_from_u64(seed);

@@ -197,6 +197,10 @@ fn framed_views(
     views
 }
 
+/// Bounds on the rendered views: count, and pixels a side.
+const MAX_VIEWS: usize = 1000;
+const MAX_SIDE: u32 = 4096;
+
 /// Inspects `models` (at least three copies of one part); the first is the
 /// reference frame everything is aligned to.
 pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspection, InspectError> {
@@ -223,6 +227,27 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
         return Err(InspectError::Invalid(
             "need at least one view of at least 16x16 pixels".into(),
         ));
+    }
+    // Every view is rendered for every model: 10⁵ views ran for hours, and
+    // 10⁶-pixel sides ran out of memory.
+    if settings.views > MAX_VIEWS || settings.width > MAX_SIDE || settings.height > MAX_SIDE {
+        return Err(InspectError::Invalid(format!(
+            "at most {MAX_VIEWS} views of at most {MAX_SIDE}x{MAX_SIDE} pixels, got {} of {}x{}",
+            settings.views, settings.width, settings.height
+        )));
+    }
+    if !(settings.colour_threshold.is_finite() && settings.colour_threshold > 0.0) {
+        return Err(InspectError::Invalid(format!(
+            "the colour threshold must be positive, got {}",
+            settings.colour_threshold
+        )));
+    }
+    if let Some(r) = settings.photometric_radius_mm
+        && !(r.is_finite() && r > 0.0)
+    {
+        return Err(InspectError::Invalid(format!(
+            "the photometric radius must be positive, got {r} mm"
+        )));
     }
     let candidates: Vec<usize> = match &settings.references {
         None => (0..models.len()).collect(),

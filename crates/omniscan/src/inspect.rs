@@ -34,7 +34,8 @@ pub struct ColourMatchArgs {
 impl ColourMatchArgs {
     /// The radius to match colours over, millimetres; `None`: raw colours.
     pub fn radius_mm(&self) -> Option<f64> {
-        (self.photometric_radius_mm > 0.0).then_some(self.photometric_radius_mm)
+        // NaN passes on, for the inspection to refuse.
+        (self.photometric_radius_mm != 0.0).then_some(self.photometric_radius_mm)
     }
 }
 

@@ -729,6 +729,45 @@ fn inspect_names_the_defective_copy_and_writes_the_report() {
     let o = inspect_copies(&["--out", &report, "--reference", "x.ply,a.ply"]);
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("x.ply"));
+    // Settings out of range (10⁵ views ran for hours; NaN thresholds ran).
+    for (flags, message) in [
+        (
+            &["--colour-threshold", "NaN"][..],
+            "colour threshold must be",
+        ),
+        (
+            &["--photometric-radius-mm", "NaN"][..],
+            "photometric radius must be",
+        ),
+        (&["--views", "100000"][..], "at most 1000 views"),
+    ] {
+        let mut options = vec!["--out", report.as_str()];
+        options.extend_from_slice(flags);
+        let o = inspect_copies(&options);
+        assert!(!o.status.success());
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains(message), "{err}");
+    }
+    let out = path("huge.ply");
+    for (flags, message) in [
+        (
+            &["--defect", "bump", "--size-mm", "1e9"][..],
+            "at most the part's",
+        ),
+        (&["--noise-mm", "NaN"][..], "position noise must be"),
+    ] {
+        let mut args = vec![
+            "make-copy",
+            original.to_str().unwrap(),
+            "--out",
+            out.as_str(),
+        ];
+        args.extend_from_slice(flags);
+        let o = omniscan(&args);
+        assert!(!o.status.success());
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains(message), "{err}");
+    }
 }
 
 #[test]
