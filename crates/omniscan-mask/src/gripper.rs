@@ -227,6 +227,11 @@ pub fn refine(
                 grown.data[i] = accept;
             }
         }
+        // A pass that adds nothing ends the growth (later ones would add
+        // nothing either): --grow-px 1000000 ran a million passes.
+        if grown == mask {
+            break;
+        }
         mask = grown;
     }
     mask
@@ -403,5 +408,12 @@ mod tests {
         let m = refine(&p, &grey(20, 20), &depth, &settings);
         assert_eq!(m.count(), 120);
         assert!(m.at(16, 9) && !m.at(17, 9));
+        // Growth stops where it adds nothing: a million passes give the
+        // same mask at once.
+        let settings = GripperSettings {
+            grow_px: 1_000_000,
+            ..settings
+        };
+        assert_eq!(refine(&p, &grey(20, 20), &depth, &settings), m);
     }
 }

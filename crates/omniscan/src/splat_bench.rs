@@ -113,6 +113,14 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     if args.repeats == 0 || args.width == 0 || args.height == 0 {
         bail!("--repeats, --width and --height must be at least 1");
     }
+    // Beyond these a mistyped figure runs the machine out of memory (10⁹
+    // Gaussians, 10⁶-pixel sides) rather than measuring anything.
+    if args.width > 16384 || args.height > 16384 {
+        bail!("--width and --height must be at most 16384 pixels");
+    }
+    if let Some(&n) = args.gaussians.iter().find(|&&n| n > 20_000_000) {
+        bail!("--gaussians {n} is more than 20,000,000");
+    }
     let gpu = match args.backend {
         Backend::Cpu => None,
         backend => match Renderer::new(backend)? {
