@@ -77,7 +77,7 @@ enum Command {
         #[arg(long)]
         no_masks: bool,
     },
-    /// Train a splat model on a capture with the paper's masked losses (CPU).
+    /// Train a splat model on a capture with the paper's masked losses (CPU, or a GPU with --backend).
     Train(train::TrainArgs),
     /// PSNR and SSIM of a splat model against a capture's views (whole and masked).
     Eval(train::EvalArgs),
