@@ -382,7 +382,15 @@ impl Capture {
     ) -> std::result::Result<(), String> {
         let path = self.resolve(rel);
         if !path.is_file() {
-            return Err(format!("{at}: missing image {}", path.display()));
+            // A frame's own masks are `omniscan mask`'s output: say how to
+            // make them again.
+            let hint = if at.ends_with("].object_mask_path") || at.ends_with("].gripper_mask_path")
+            {
+                " (`omniscan mask` makes it again)"
+            } else {
+                ""
+            };
+            return Err(format!("{at}: missing image {}{hint}", path.display()));
         }
         let (iw, ih, color) = crate::image_io::probe(&path).map_err(|e| format!("{at}: {e}"))?;
         if (iw, ih) != (w, h) {

@@ -799,6 +799,10 @@ fn mask_writes_masks_records_them_and_reports_iou_per_arm() {
     // the run makes the missing ones and keeps the rest.
     std::fs::remove_file(capture.join("masks/gripper/left_000.png")).unwrap();
     std::fs::remove_file(capture.join("masks/object/right_001.png")).unwrap();
+    let out = omniscan(&["validate", capture.to_str().unwrap()]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("`omniscan mask` makes it again"), "{err}");
     let out = omniscan(&["mask", capture.to_str().unwrap(), "--json"]);
     assert!(
         out.status.success(),
