@@ -313,26 +313,35 @@ impl Capture {
     /// Checks every image the capture names: present, decodable, of the
     /// camera's size, of the right pixel format. Runs in parallel.
     pub fn validate(&self) -> Result<()> {
-        let mut checks: Vec<(String, String, ImageKind)> = Vec::new();
+        // (key, path, format, what to say when the file is missing)
+        let mut checks: Vec<(String, String, ImageKind, &str)> = Vec::new();
         for (list, frames) in [
             ("frames", &self.file.frames),
             ("empty_frames", &self.file.empty_frames),
         ] {
             for (i, frame) in frames.iter().enumerate() {
                 let at = |key: &str| format!("{list}[{i}].{key}");
-                checks.push((at("file_path"), frame.file_path.clone(), ImageKind::Rgb));
+                checks.push((at("file_path"), frame.file_path.clone(), ImageKind::Rgb, ""));
+                // A frame's own masks are `omniscan mask`'s output.
+                let remade = " (`omniscan mask` makes it again)";
                 let optional = [
-                    ("depth_path", &frame.depth_path, ImageKind::Depth),
-                    ("object_mask_path", &frame.object_mask_path, ImageKind::Mask),
+                    ("depth_path", &frame.depth_path, ImageKind::Depth, ""),
+                    (
+                        "object_mask_path",
+                        &frame.object_mask_path,
+                        ImageKind::Mask,
+                        remade,
+                    ),
                     (
                         "gripper_mask_path",
                         &frame.gripper_mask_path,
                         ImageKind::Mask,
+                        remade,
                     ),
                 ];
-                for (key, path, kind) in optional {
+                for (key, path, kind, missing) in optional {
                     if let Some(p) = path {
-                        checks.push((at(key), p.clone(), kind));
+                        checks.push((at(key), p.clone(), kind, missing));
                     }
                 }
                 if let Some(gt) = &frame.gt {
@@ -347,7 +356,7 @@ impl Capture {
                     ];
                     for (key, path, kind) in gt_files {
                         if let Some(p) = path {
-                            checks.push((at(key), p.clone(), kind));
+                            checks.push((at(key), p.clone(), kind, ""));
                         }
                     }
                 }
@@ -359,7 +368,9 @@ impl Capture {
         );
         let mut problems: Vec<String> = checks
             .par_iter()
-            .filter_map(|(at, rel, kind)| self.check_image(at, rel, *kind, w, h).err())
+            .filter_map(|(at, rel, kind, missing)| {
+                self.check_image(at, rel, *kind, missing, w, h).err()
+            })
             .collect();
         problems.sort();
         if problems.is_empty() {
@@ -377,20 +388,13 @@ impl Capture {
         at: &str,
         rel: &str,
         kind: ImageKind,
+        missing: &str,
         w: u32,
         h: u32,
     ) -> std::result::Result<(), String> {
         let path = self.resolve(rel);
         if !path.is_file() {
-            // A frame's own masks are `omniscan mask`'s output: say how to
-            // make them again.
-            let hint = if at.ends_with("].object_mask_path") || at.ends_with("].gripper_mask_path")
-            {
-                " (`omniscan mask` makes it again)"
-            } else {
-                ""
-            };
-            return Err(format!("{at}: missing image {}{hint}", path.display()));
+            return Err(format!("{at}: missing image {}{missing}", path.display()));
         }
         let (iw, ih, color) = crate::image_io::probe(&path).map_err(|e| format!("{at}: {e}"))?;
         if (iw, ih) != (w, h) {

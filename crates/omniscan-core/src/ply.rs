@@ -240,14 +240,18 @@ fn empty_columns(e: &Element, body_len: usize) -> Vec<Column> {
         .collect()
 }
 
+/// How many of `e`'s items the body holds: none for an element without
+/// properties, whatever its count says (a damaged one looped 2⁶⁴ times).
+fn items_to_read(e: &Element) -> usize {
+    if e.properties.is_empty() { 0 } else { e.count }
+}
+
 fn read_ascii(body: &[u8], elements: &mut [Element]) -> std::result::Result<(), String> {
     let text = std::str::from_utf8(body).map_err(|_| "ASCII PLY body is not text")?;
     let mut tokens = text.split_ascii_whitespace();
     for e in elements.iter_mut() {
         let mut columns = empty_columns(e, body.len());
-        // Items without properties hold nothing to read.
-        let items = if e.properties.is_empty() { 0 } else { e.count };
-        for item in 0..items {
+        for item in 0..items_to_read(e) {
             let mut next = |what: &str| -> std::result::Result<f64, String> {
                 let t = tokens.next().ok_or_else(|| {
                     format!(
@@ -332,8 +336,7 @@ fn read_binary(
                 ));
             }
         }
-        let items = if e.properties.is_empty() { 0 } else { e.count };
-        for item in 0..items {
+        for item in 0..items_to_read(e) {
             for (p, col) in e.properties.iter().zip(columns.iter_mut()) {
                 let mut take = |t: ScalarType| -> std::result::Result<f64, String> {
                     let n = t.size();

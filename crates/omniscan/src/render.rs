@@ -43,8 +43,8 @@ pub struct RenderArgs {
     pub backend: Backend,
 }
 
-/// The largest turntable image side, pixels.
-const MAX_SIDE: u32 = 16384;
+/// The largest image side rendered on request (turntables, `bench splat`), pixels.
+pub const MAX_SIDE: u32 = 16384;
 
 pub fn run(args: RenderArgs) -> Result<()> {
     let model = read_splats(&args.model)?;

@@ -115,8 +115,9 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     }
     // Beyond these a mistyped figure runs the machine out of memory (10⁹
     // Gaussians, 10⁶-pixel sides) rather than measuring anything.
-    if args.width > 16384 || args.height > 16384 {
-        bail!("--width and --height must be at most 16384 pixels");
+    let most = crate::render::MAX_SIDE;
+    if args.width > most || args.height > most {
+        bail!("--width and --height must be at most {most} pixels");
     }
     if let Some(&n) = args.gaussians.iter().find(|&&n| n > 20_000_000) {
         bail!("--gaussians {n} is more than 20,000,000");
