@@ -930,6 +930,55 @@ fn downscale_factor(downscale: u32) -> Result<u32, SplatError> {
     Ok(downscale)
 }
 
+/// A photo and its object mask shrunk by `f` (box filter): each pixel's
+/// object coverage, and its colour averaged over its object sub-pixels only
+/// (over all of them where it has none). Colour × coverage is then the
+/// object alone over black, the exact shrunk composite that training and
+/// evaluation compare renders with. Averaging the whole photo instead mixed
+/// the background behind the object's edge (DTU's white table beside dark
+/// steel) into every edge pixel's target, an error no render of the object
+/// can match.
+fn shrink_object(
+    rgb: &omniscan_core::image_io::RgbImage,
+    mask: &omniscan_core::image_io::Mask,
+    f: u32,
+) -> (Vec<[f32; 3]>, Vec<f32>) {
+    let (w, h, f) = (
+        (rgb.width / f) as usize,
+        (rgb.height / f) as usize,
+        f as usize,
+    );
+    let full_w = rgb.width as usize;
+    let mut image = vec![[0.0f32; 3]; w * h];
+    let mut coverage = vec![0.0f32; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let (mut all, mut object, mut inside) = ([0u32; 3], [0u32; 3], 0u32);
+            for dy in 0..f {
+                for dx in 0..f {
+                    let p = (y * f + dy) * full_w + x * f + dx;
+                    let is_object = mask.data[p] >= 128;
+                    inside += is_object as u32;
+                    for c in 0..3 {
+                        let v = rgb.data[p * 3 + c] as u32;
+                        all[c] += v;
+                        object[c] += v * is_object as u32;
+                    }
+                }
+            }
+            let o = y * w + x;
+            coverage[o] = inside as f32 / (f * f) as f32;
+            let (sum, count) = if inside > 0 {
+                (object, inside)
+            } else {
+                (all, (f * f) as u32)
+            };
+            image[o] = sum.map(|v| v as f32 / 255.0 / count as f32);
+        }
+    }
+    (image, coverage)
+}
+
 /// Training views from a capture: images, object masks and gripper masks
 /// (the frames' own masks, else the simulator's ground truth), cameras in the
 /// reconstruction frame of `set`, images shrunk by `downscale` (box filter).
@@ -985,13 +1034,12 @@ pub fn views_from_capture(
             }
         }
         let full_w = rgb.width as usize;
-        let mut image = vec![[0.0f32; 3]; (w * h) as usize];
+        let (image, obj) = shrink_object(&rgb, &object, f);
         // Depth: the nearest valid sample of each block.
         let mut depth = match &depth_map {
             Some(_) => vec![0.0f32; (w * h) as usize],
             None => Vec::new(),
         };
-        let mut obj = vec![0.0f32; (w * h) as usize];
         let mut grip = vec![0.0f32; (w * h) as usize];
         let area = (f * f) as f32;
         for y in 0..h as usize {
@@ -1000,10 +1048,6 @@ pub fn views_from_capture(
                 for dy in 0..f as usize {
                     for dx in 0..f as usize {
                         let i = (y * f as usize + dy) * full_w + x * f as usize + dx;
-                        for c in 0..3 {
-                            image[o][c] += rgb.data[i * 3 + c] as f32 / 255.0 / area;
-                        }
-                        obj[o] += (object.data[i] >= 128) as u8 as f32 / area;
                         if let Some(d) = &depth_map {
                             let z = d.data[i] as f32 * 0.001;
                             if z > 0.0 && (depth[o] == 0.0 || z < depth[o]) {
@@ -1133,6 +1177,13 @@ pub fn evaluate(
 /// `cy`, `w`, `h` (pixels) and `camera_to_world_opencv` (4x4). An optional
 /// `scale_mat` (NeuS convention: maps the unit sphere onto the object) is
 /// undone so the object sits in the unit sphere. No gripper, no depth.
+///
+/// `cx`, `cy` are OpenCV's: the first pixel's centre is (0, 0). The
+/// rasterizer puts it at (0.5, 0.5), so both move by half a pixel. DTU's
+/// file shows the convention: its 800x600 `cx` is (cx₁₆₀₀ + 0.5)/2 − 0.5 of
+/// the decomposed 1600x1200 projection matrix. Left as given, every view
+/// sat half a pixel off, in a different direction on the object for each
+/// camera.
 pub fn views_from_cameras_json(
     path: &std::path::Path,
     downscale: u32,
@@ -1202,29 +1253,13 @@ pub fn views_from_cameras_json(
             return Err(bad("mask and image sizes differ"));
         }
         let (w, h) = (rgb.width / f, rgb.height / f);
-        let area = (f * f) as f32;
-        let mut image = vec![[0.0f32; 3]; (w * h) as usize];
-        let mut object = vec![0.0f32; (w * h) as usize];
-        for y in 0..h as usize {
-            for x in 0..w as usize {
-                let o = y * w as usize + x;
-                for dy in 0..f as usize {
-                    for dx in 0..f as usize {
-                        let p = (y * f as usize + dy) * rgb.width as usize + x * f as usize + dx;
-                        for c in 0..3 {
-                            image[o][c] += rgb.data[p * 3 + c] as f32 / 255.0 / area;
-                        }
-                        object[o] += (mask.data[p] >= 128) as u8 as f32 / area;
-                    }
-                }
-            }
-        }
+        let (image, object) = shrink_object(&rgb, &mask, f);
         let camera = Camera {
             viewmat,
             fx: (num("fl_x")? / f as f64) as f32,
             fy: (num("fl_y")? / f as f64) as f32,
-            cx: (num("cx")? / f as f64) as f32,
-            cy: (num("cy")? / f as f64) as f32,
+            cx: ((num("cx")? + 0.5) / f as f64) as f32,
+            cy: ((num("cy")? + 0.5) / f as f64) as f32,
             width: w,
             height: h,
             near: 0.01,
@@ -1260,6 +1295,78 @@ mod tests {
         let (train, held_out) = split_held_out_from((0..17).collect(), 8, Some(0));
         assert_eq!(held_out, vec![0, 8, 16]);
         assert_eq!(train.len(), 14);
+    }
+
+    #[test]
+    fn shrinking_keeps_the_background_out_of_the_object_edge() {
+        use omniscan_core::image_io::{Mask, RgbImage};
+        // A 4x2 photo shrunk by 2: the left block is half object (dark red)
+        // on a white table, the right block is all table.
+        let (object, table) = ([60u8, 10, 10], [250u8, 250, 250]);
+        let is_object = [true, false, false, false, true, false, false, false];
+        let rgb = RgbImage {
+            width: 4,
+            height: 2,
+            data: is_object
+                .iter()
+                .flat_map(|&o| if o { object } else { table })
+                .collect(),
+        };
+        let mask = Mask {
+            width: 4,
+            height: 2,
+            data: is_object.iter().map(|&o| if o { 255 } else { 0 }).collect(),
+        };
+        let (image, coverage) = shrink_object(&rgb, &mask, 2);
+        assert_eq!(coverage, vec![0.5, 0.0]);
+        // Colour × coverage is the object alone over black: half the red, no white.
+        let composite = image[0].map(|c| c * coverage[0]);
+        for (c, o) in composite.iter().zip(object) {
+            assert!((c - 0.5 * o as f32 / 255.0).abs() < 1e-6, "{composite:?}");
+        }
+        // A block without object keeps the photo's mean.
+        assert!(image[1].iter().all(|&c| (c - 250.0 / 255.0).abs() < 1e-6));
+    }
+
+    #[test]
+    fn a_photo_sets_principal_point_is_opencvs() {
+        use omniscan_core::image_io::{Mask, RgbImage, write_mask, write_rgb};
+        let dir = tempfile::tempdir().unwrap();
+        write_rgb(
+            &dir.path().join("0.png"),
+            &RgbImage {
+                width: 8,
+                height: 4,
+                data: vec![128; 8 * 4 * 3],
+            },
+        )
+        .unwrap();
+        write_mask(
+            &dir.path().join("0m.png"),
+            &Mask {
+                width: 8,
+                height: 4,
+                data: vec![255; 8 * 4],
+            },
+        )
+        .unwrap();
+        let identity = [
+            [1., 0., 0., 0.],
+            [0., 1., 0., 0.],
+            [0., 0., 1., 0.],
+            [0., 0., 0., 1.],
+        ];
+        // OpenCV's centre of an 8x4 image is (3.5, 1.5).
+        let frame = serde_json::json!({
+            "file_path": "0.png", "mask_path": "0m.png", "fl_x": 10.0, "fl_y": 10.0,
+            "cx": 3.5, "cy": 1.5, "w": 8, "h": 4, "camera_to_world_opencv": identity,
+        });
+        let path = dir.path().join("cameras.json");
+        std::fs::write(&path, serde_json::json!({ "frames": [frame] }).to_string()).unwrap();
+        let full = &views_from_cameras_json(&path, 1).unwrap()[0].camera;
+        assert_eq!((full.cx, full.cy), (4.0, 2.0), "the image centre");
+        let half = &views_from_cameras_json(&path, 2).unwrap()[0].camera;
+        assert_eq!((half.cx, half.cy, half.width), (2.0, 1.0, 4));
     }
 
     /// Trains on the CPU without progress reports.
