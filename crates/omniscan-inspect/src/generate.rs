@@ -56,15 +56,15 @@ impl Default for CopySettings {
 
 /// The diagonal of the box around `model`'s centres, millimetres.
 fn span_mm(model: &Splats, units_per_metre: f64) -> f64 {
-    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
-    for m in &model.means {
-        for a in 0..3 {
-            lo[a] = lo[a].min(m[a]);
-            hi[a] = hi[a].max(m[a]);
-        }
-    }
-    let d2: f64 = (0..3).map(|a| ((hi[a] - lo[a]) as f64).powi(2)).sum();
-    d2.sqrt() / units_per_metre * 1e3
+    let centres = omniscan_register::PointCloud {
+        points: model
+            .means
+            .iter()
+            .map(|m| Point3::new(m[0] as f64, m[1] as f64, m[2] as f64))
+            .collect(),
+        ..Default::default()
+    };
+    centres.extent() / units_per_metre * 1e3
 }
 
 fn check_units(units_per_metre: f64) -> Result<(), InspectError> {

@@ -11,6 +11,13 @@ fn omniscan(args: &[&str]) -> Output {
         .expect("run omniscan")
 }
 
+/// Asserts that a run failed and that its error says `message`.
+fn assert_refused(out: &Output, message: &str) {
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains(message), "{err}");
+}
+
 fn tiny_capture(dir: &Path) {
     let out = omniscan(&[
         "sim",
@@ -474,13 +481,7 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
             "downscale factor must be at least 1",
         ),
     ] {
-        let out = train_more(flags);
-        assert!(!out.status.success());
-        assert!(
-            String::from_utf8_lossy(&out.stderr).contains(message),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        assert_refused(&train_more(flags), message);
     }
     // Starting from a point cloud: the first model's splat centres; with
     // AbsGS's statistic, whose threshold the report gives.
@@ -632,13 +633,7 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
             renders.to_str().unwrap(),
         ];
         a.extend_from_slice(flags);
-        let out = omniscan(&a);
-        assert!(!out.status.success());
-        assert!(
-            String::from_utf8_lossy(&out.stderr).contains(message),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        assert_refused(&omniscan(&a), message);
     }
 }
 
@@ -743,10 +738,7 @@ fn inspect_names_the_defective_copy_and_writes_the_report() {
     ] {
         let mut options = vec!["--out", report.as_str()];
         options.extend_from_slice(flags);
-        let o = inspect_copies(&options);
-        assert!(!o.status.success());
-        let err = String::from_utf8_lossy(&o.stderr);
-        assert!(err.contains(message), "{err}");
+        assert_refused(&inspect_copies(&options), message);
     }
     let out = path("huge.ply");
     for (flags, message) in [
@@ -763,10 +755,7 @@ fn inspect_names_the_defective_copy_and_writes_the_report() {
             out.as_str(),
         ];
         args.extend_from_slice(flags);
-        let o = omniscan(&args);
-        assert!(!o.status.success());
-        let err = String::from_utf8_lossy(&o.stderr);
-        assert!(err.contains(message), "{err}");
+        assert_refused(&omniscan(&args), message);
     }
 }
 
@@ -799,10 +788,10 @@ fn mask_writes_masks_records_them_and_reports_iou_per_arm() {
     // the run makes the missing ones and keeps the rest.
     std::fs::remove_file(capture.join("masks/gripper/left_000.png")).unwrap();
     std::fs::remove_file(capture.join("masks/object/right_001.png")).unwrap();
-    let out = omniscan(&["validate", capture.to_str().unwrap()]);
-    assert!(!out.status.success());
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("`omniscan mask` makes it again"), "{err}");
+    assert_refused(
+        &omniscan(&["validate", capture.to_str().unwrap()]),
+        "`omniscan mask` makes it again",
+    );
     let out = omniscan(&["mask", capture.to_str().unwrap(), "--json"]);
     assert!(
         out.status.success(),
