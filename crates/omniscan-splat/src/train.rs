@@ -1220,6 +1220,13 @@ pub fn views_from_cameras_json(
         // Normalised world: x' = S⁻¹x; the camera keeps its rotation up to the uniform scale.
         let c2w = normalise * c2w;
         let s = c2w.fixed_view::<3, 1>(0, 0).norm();
+        // A zero or mirrored 3x3 block would re-orthonormalise below into a
+        // NaN or mirrored camera that trains without complaint.
+        if !(s.is_finite() && s > 0.0 && c2w.fixed_view::<3, 3>(0, 0).determinant() > 0.0) {
+            return Err(bad(
+                "camera_to_world_opencv's 3x3 block is not a rotation (zero, mirrored or not finite)",
+            ));
+        }
         let mut rot = c2w.fixed_view::<3, 3>(0, 0).into_owned() / s;
         // Re-orthonormalise.
         let svd = rot.svd(true, true);
@@ -1235,31 +1242,63 @@ pub fn views_from_cameras_json(
             viewmat[r][3] = t[r] as f32;
         }
         viewmat[3][3] = 1.0;
-        let rgb = read_rgb(
-            &dir.join(
-                fr["file_path"]
-                    .as_str()
-                    .ok_or_else(|| bad("missing file_path"))?,
-            ),
-        )?;
-        let mask = read_mask(
-            &dir.join(
-                fr["mask_path"]
-                    .as_str()
-                    .ok_or_else(|| bad("missing mask_path"))?,
-            ),
-        )?;
+        let positive = |k: &str| {
+            let v = num(k)?;
+            (v.is_finite() && v > 0.0).then_some(v).ok_or_else(|| {
+                bad(&format!(
+                    "`{k}` must be a positive focal length in pixels, got {v}"
+                ))
+            })
+        };
+        let (fl_x, fl_y) = (positive("fl_x")?, positive("fl_y")?);
+        let (cx, cy) = (num("cx")?, num("cy")?);
+        if !(cx.is_finite() && cy.is_finite()) {
+            return Err(bad("`cx`, `cy` must be finite"));
+        }
+        let image_path = dir.join(
+            fr["file_path"]
+                .as_str()
+                .ok_or_else(|| bad("missing file_path"))?,
+        );
+        let mask_path = dir.join(
+            fr["mask_path"]
+                .as_str()
+                .ok_or_else(|| bad("missing mask_path"))?,
+        );
+        let rgb = read_rgb(&image_path)?;
+        let mask = read_mask(&mask_path)?;
         if (mask.width, mask.height) != (rgb.width, rgb.height) {
-            return Err(bad("mask and image sizes differ"));
+            return Err(bad(&format!(
+                "the mask {} is {}x{} but the image {} is {}x{}",
+                mask_path.display(),
+                mask.width,
+                mask.height,
+                image_path.display(),
+                rgb.width,
+                rgb.height
+            )));
+        }
+        // The intrinsics are in pixels of the frame's `w` x `h`: an image
+        // resized without its cameras would train with a wrong focal length
+        // and principal point.
+        for (key, stated, actual) in [("w", &fr["w"], rgb.width), ("h", &fr["h"], rgb.height)] {
+            if !stated.is_null() && stated.as_f64() != Some(actual as f64) {
+                return Err(bad(&format!(
+                    "`{key}` is {stated} but the image {} is {}x{} (the intrinsics are in pixels of the stated size)",
+                    image_path.display(),
+                    rgb.width,
+                    rgb.height
+                )));
+            }
         }
         let (w, h) = (rgb.width / f, rgb.height / f);
         let (image, object) = shrink_object(&rgb, &mask, f);
         let camera = Camera {
             viewmat,
-            fx: (num("fl_x")? / f as f64) as f32,
-            fy: (num("fl_y")? / f as f64) as f32,
-            cx: ((num("cx")? + 0.5) / f as f64) as f32,
-            cy: ((num("cy")? + 0.5) / f as f64) as f32,
+            fx: (fl_x / f as f64) as f32,
+            fy: (fl_y / f as f64) as f32,
+            cx: ((cx + 0.5) / f as f64) as f32,
+            cy: ((cy + 0.5) / f as f64) as f32,
             width: w,
             height: h,
             near: 0.01,
@@ -1328,8 +1367,9 @@ mod tests {
         assert!(image[1].iter().all(|&c| (c - 250.0 / 255.0).abs() < 1e-6));
     }
 
-    #[test]
-    fn a_photo_sets_principal_point_is_opencvs() {
+    /// A photo set of one 8x4 grey image with a full mask (and a 8x2 mask
+    /// beside it), seen by an identity camera; `frame` is its JSON frame.
+    fn one_photo_set() -> (tempfile::TempDir, serde_json::Value) {
         use omniscan_core::image_io::{Mask, RgbImage, write_mask, write_rgb};
         let dir = tempfile::tempdir().unwrap();
         write_rgb(
@@ -1341,15 +1381,17 @@ mod tests {
             },
         )
         .unwrap();
-        write_mask(
-            &dir.path().join("0m.png"),
-            &Mask {
-                width: 8,
-                height: 4,
-                data: vec![255; 8 * 4],
-            },
-        )
-        .unwrap();
+        for (name, height) in [("0m.png", 4), ("short_mask.png", 2)] {
+            write_mask(
+                &dir.path().join(name),
+                &Mask {
+                    width: 8,
+                    height,
+                    data: vec![255; 8 * height as usize],
+                },
+            )
+            .unwrap();
+        }
         let identity = [
             [1., 0., 0., 0.],
             [0., 1., 0., 0.],
@@ -1361,12 +1403,69 @@ mod tests {
             "file_path": "0.png", "mask_path": "0m.png", "fl_x": 10.0, "fl_y": 10.0,
             "cx": 3.5, "cy": 1.5, "w": 8, "h": 4, "camera_to_world_opencv": identity,
         });
+        (dir, frame)
+    }
+
+    #[test]
+    fn a_photo_sets_principal_point_is_opencvs() {
+        let (dir, frame) = one_photo_set();
         let path = dir.path().join("cameras.json");
         std::fs::write(&path, serde_json::json!({ "frames": [frame] }).to_string()).unwrap();
         let full = &views_from_cameras_json(&path, 1).unwrap()[0].camera;
         assert_eq!((full.cx, full.cy), (4.0, 2.0), "the image centre");
         let half = &views_from_cameras_json(&path, 2).unwrap()[0].camera;
         assert_eq!((half.cx, half.cy, half.width), (2.0, 1.0, 4));
+    }
+
+    #[test]
+    fn a_photo_sets_impossible_cameras_are_refused_by_name() {
+        let (dir, frame) = one_photo_set();
+        let mirrored = [
+            [-1., 0., 0., 0.],
+            [0., 1., 0., 0.],
+            [0., 0., 1., 0.],
+            [0., 0., 0., 1.],
+        ];
+        let cases: [(&str, serde_json::Value, &str); 5] = [
+            ("w", serde_json::json!(16), "`w` is 16 but the image"),
+            (
+                "fl_x",
+                serde_json::json!(-10.0),
+                "`fl_x` must be a positive focal length",
+            ),
+            (
+                "fl_y",
+                serde_json::json!(0.0),
+                "`fl_y` must be a positive focal length",
+            ),
+            (
+                "camera_to_world_opencv",
+                serde_json::json!(mirrored),
+                "is not a rotation",
+            ),
+            (
+                "mask_path",
+                serde_json::json!("short_mask.png"),
+                "is 8x2 but the image",
+            ),
+        ];
+        let path = dir.path().join("cameras.json");
+        for (key, value, message) in cases {
+            let mut bad = frame.clone();
+            bad[key] = value;
+            std::fs::write(
+                &path,
+                serde_json::json!({ "frames": [frame, bad] }).to_string(),
+            )
+            .unwrap();
+            let error = views_from_cameras_json(&path, 1).unwrap_err().to_string();
+            assert!(
+                error.contains("cameras.json")
+                    && error.contains("frames[1]")
+                    && error.contains(message),
+                "{key}: {error}"
+            );
+        }
     }
 
     /// Trains on the CPU without progress reports.

@@ -42,7 +42,7 @@ pub enum DensificationArg {
 
 #[derive(clap::Args)]
 pub struct TrainArgs {
-    /// The capture directory, or a calibrated photo set's cameras.json (file_path, mask_path, fl_x, fl_y, cx, cy in OpenCV's pixel convention, camera_to_world_opencv per frame).
+    /// The capture directory, or a calibrated photo set's cameras.json (file_path, mask_path, fl_x, fl_y, cx, cy in OpenCV's pixel convention, camera_to_world_opencv per frame; w, h, when given, must be the image's size, since the intrinsics are in its pixels).
     pub capture: PathBuf,
     #[arg(long, value_enum, default_value = "left")]
     pub arm: ArmSet,
