@@ -1375,7 +1375,7 @@ mod tests {
         assert!(image[1].iter().all(|&c| (c - 250.0 / 255.0).abs() < 1e-6));
     }
 
-    /// A photo set of one 8x4 grey image with a full mask (and a 8x2 mask
+    /// A photo set of one 8x4 grey image with a full mask (and an 8x2 mask
     /// beside it), seen by an identity camera; `frame` is its JSON frame.
     fn one_photo_set() -> (tempfile::TempDir, serde_json::Value) {
         use omniscan_core::image_io::{Mask, RgbImage, write_mask, write_rgb};
