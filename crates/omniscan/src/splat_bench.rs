@@ -227,7 +227,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                     quats: 1e-3,
                     opacities: 5e-2,
                     sh_dc: 2.5e-3,
-                    sh_rest: 1.25e-4,
+                    sh_rest: omniscan_splat::train::SH_REST_LR,
                     mcmc: None,
                     absolute_gradients: false,
                 };

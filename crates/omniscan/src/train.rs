@@ -79,6 +79,9 @@ pub struct TrainArgs {
     /// Position learning rate per unit of scene extent (the splats' spread at the start), decayed to 1% over the run.
     #[arg(long, default_value_t = 1.6e-4)]
     pub position_lr: f32,
+    /// Adam's learning rate for the SH bands above the DC term (view-dependent colour); the DC term's is 2.5e-3.
+    #[arg(long, default_value_t = omniscan_splat::train::SH_REST_LR)]
+    pub sh_rest_lr: f32,
     /// Densification stops adding splats at this many.
     #[arg(long, default_value_t = 200_000)]
     pub max_splats: usize,
@@ -129,6 +132,12 @@ pub fn run(args: TrainArgs) -> Result<()> {
             args.position_lr
         );
     }
+    if !(args.sh_rest_lr.is_finite() && args.sh_rest_lr >= 0.0) {
+        bail!(
+            "--sh-rest-lr must be a finite number, 0 or more, got {}",
+            args.sh_rest_lr
+        );
+    }
     if args.max_splats == 0 {
         bail!("--max-splats must be at least 1");
     }
@@ -157,6 +166,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         max_sh_degree: args.sh_degree,
         max_splats: args.max_splats,
         position_lr: args.position_lr,
+        sh_rest_lr: args.sh_rest_lr,
         grad_threshold: args.grad_threshold.unwrap_or(strategy.grad_threshold),
         ..strategy
     };
@@ -285,6 +295,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
             "antialiased": model.antialiased,
             "sh_degree": config.max_sh_degree,
             "position_lr": config.position_lr,
+            "sh_rest_lr": config.sh_rest_lr,
             "max_splats": config.max_splats,
             "seed": config.seed,
         },

@@ -462,6 +462,7 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
         (&["--init", missing.to_str().unwrap()][..], "none.ply"),
         (&["--grad-threshold", "0"][..], "--grad-threshold must be"),
         (&["--position-lr", "NaN"][..], "--position-lr must be"),
+        (&["--sh-rest-lr=-1"][..], "--sh-rest-lr must be"),
         (
             &["--densification", "mcmc", "--absgrad"][..],
             "MCMC does not use",
