@@ -90,6 +90,9 @@ pub enum Densification {
     Mcmc,
 }
 
+/// Adam's rate for the SH DC term (gsplat's).
+pub const SH_DC_LR: f32 = 2.5e-3;
+
 /// The default Adam rate of the SH bands above DC: the DC term's own, not
 /// gsplat's twentieth of it. At a twentieth the bands, grown one degree
 /// per 1000 steps, stay too small in a 3000-step run to follow the
@@ -101,7 +104,7 @@ pub enum Densification {
 /// whole-image PSNR falls by about 2 dB, all of it under the gripper,
 /// which no view of that arm sees and the paper's metric leaves out (the
 /// merged model, which sees it from the other arm, keeps 37.6 dB).
-pub const SH_REST_LR: f32 = 2.5e-3;
+pub const SH_REST_LR: f32 = SH_DC_LR;
 
 impl TrainConfig {
     pub fn with_steps(steps: usize) -> TrainConfig {
@@ -609,7 +612,7 @@ pub fn train_resumable(
                 log_scales: 5e-3,
                 quats: 1e-3,
                 opacities: 5e-2,
-                sh_dc: 2.5e-3,
+                sh_dc: SH_DC_LR,
                 sh_rest: config.sh_rest_lr,
                 mcmc: mcmc.then(|| {
                     let (opacity_penalty, scale_penalty) =
@@ -721,7 +724,7 @@ pub fn train_resumable(
                 sh_grad.as_flattened(),
                 |j| {
                     if (j / 3) % k == 0 {
-                        2.5e-3
+                        SH_DC_LR
                     } else {
                         config.sh_rest_lr
                     }

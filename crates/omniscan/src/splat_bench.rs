@@ -226,7 +226,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                     log_scales: 5e-3,
                     quats: 1e-3,
                     opacities: 5e-2,
-                    sh_dc: 2.5e-3,
+                    sh_dc: omniscan_splat::train::SH_DC_LR,
                     sh_rest: omniscan_splat::train::SH_REST_LR,
                     mcmc: None,
                     absolute_gradients: false,
