@@ -93,6 +93,12 @@ pub enum Densification {
 /// Adam's rate for the SH DC term (gsplat's).
 pub const SH_DC_LR: f32 = 2.5e-3;
 
+/// Adam's rates for the groups without a schedule or an option (gsplat's):
+/// log-scales, quaternions and opacity logits.
+pub const LOG_SCALES_LR: f32 = 5e-3;
+pub const QUATS_LR: f32 = 1e-3;
+pub const OPACITIES_LR: f32 = 5e-2;
+
 /// The default Adam rate of the SH bands above DC: the DC term's own, not
 /// gsplat's twentieth of it. At a twentieth the bands, grown one degree
 /// per 1000 steps, stay too small in a 3000-step run to follow the
@@ -605,28 +611,30 @@ pub fn train_resumable(
         let t = step as i32;
         let progress_fraction = step as f32 / config.steps as f32;
         let means_lr = config.position_lr * extent * 0.01f32.powf(progress_fraction);
+        // Both backends step with these rates (the CPU's MCMC terms come
+        // from the same `mcmc` functions).
+        let rates = StepRates {
+            means: means_lr,
+            log_scales: LOG_SCALES_LR,
+            quats: QUATS_LR,
+            opacities: OPACITIES_LR,
+            sh_dc: SH_DC_LR,
+            sh_rest: config.sh_rest_lr,
+            mcmc: mcmc.then(|| {
+                let (opacity_penalty, scale_penalty) =
+                    crate::mcmc::penalty_weights(s.len(), extent);
+                McmcStep {
+                    opacity_penalty,
+                    scale_penalty,
+                    noise_scale: crate::mcmc::noise_scale(means_lr, extent),
+                    seed: crate::mcmc::noise_seed(config.seed),
+                    step: step as u32,
+                }
+            }),
+            absolute_gradients: config.absolute_gradients,
+        };
         if let (Renderer::Gpu(gpu), Some(device)) = (renderer, device_state.as_ref()) {
             let frame = gpu.forward_state(device, &view.camera, &settings, degree, false)?;
-            let rates = StepRates {
-                means: means_lr,
-                log_scales: 5e-3,
-                quats: 1e-3,
-                opacities: 5e-2,
-                sh_dc: SH_DC_LR,
-                sh_rest: config.sh_rest_lr,
-                mcmc: mcmc.then(|| {
-                    let (opacity_penalty, scale_penalty) =
-                        crate::mcmc::penalty_weights(s.len(), extent);
-                    McmcStep {
-                        opacity_penalty,
-                        scale_penalty,
-                        noise_scale: crate::mcmc::noise_scale(means_lr, extent),
-                        seed: crate::mcmc::noise_seed(config.seed),
-                        step: step as u32,
-                    }
-                }),
-                absolute_gradients: config.absolute_gradients,
-            };
             let target = LossTarget {
                 image: &view.image,
                 object: &view.object,
@@ -678,7 +686,7 @@ pub fn train_resumable(
             adam[0].step(
                 s.means.as_flattened_mut(),
                 grads.means.as_flattened(),
-                means_lr,
+                rates.means,
                 t,
             );
             let mut log_scale_grads = grads.log_scales(&g);
@@ -694,16 +702,16 @@ pub fn train_resumable(
             adam[1].step(
                 s.log_scales.as_flattened_mut(),
                 log_scale_grads.as_flattened(),
-                5e-3,
+                rates.log_scales,
                 t,
             );
             adam[2].step(
                 s.quats.as_flattened_mut(),
                 grads.quats.as_flattened(),
-                1e-3,
+                rates.quats,
                 t,
             );
-            adam[3].step(&mut s.opacity_logits, &opacity_grads, 5e-2, t);
+            adam[3].step(&mut s.opacity_logits, &opacity_grads, rates.opacities, t);
             // Bands above the current degree get zero gradients (their moments still decay).
             let ka = coefficients(degree);
             let sh_grad: Vec<[f32; 3]> = if ka == k {
@@ -724,9 +732,9 @@ pub fn train_resumable(
                 sh_grad.as_flattened(),
                 |j| {
                     if (j / 3) % k == 0 {
-                        SH_DC_LR
+                        rates.sh_dc
                     } else {
-                        config.sh_rest_lr
+                        rates.sh_rest
                     }
                 },
                 t,

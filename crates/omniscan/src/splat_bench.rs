@@ -223,9 +223,9 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 let state = device.upload_state(&host)?;
                 let rates = omniscan_splat::gpu::training::StepRates {
                     means: 1e-5,
-                    log_scales: 5e-3,
-                    quats: 1e-3,
-                    opacities: 5e-2,
+                    log_scales: omniscan_splat::train::LOG_SCALES_LR,
+                    quats: omniscan_splat::train::QUATS_LR,
+                    opacities: omniscan_splat::train::OPACITIES_LR,
                     sh_dc: omniscan_splat::train::SH_DC_LR,
                     sh_rest: omniscan_splat::train::SH_REST_LR,
                     mcmc: None,
