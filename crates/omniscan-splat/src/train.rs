@@ -479,13 +479,32 @@ pub struct TrainState {
     /// Views still to visit in this epoch (taken from the back).
     pub order: Vec<usize>,
     pub rng_word_pos: u128,
-    /// The settings and view count the state belongs to.
+    /// The settings and views the state belongs to.
     pub fingerprint: String,
 }
 
-/// What a checkpoint must match to be resumed.
-fn fingerprint(config: &TrainConfig, views: usize) -> String {
-    format!("{config:?} views={views}")
+/// What a checkpoint must match to be resumed: the settings, the number of
+/// views, and a digest of their cameras, so that a resumed run cannot go on
+/// with views that moved (a merged capture's right arm under another
+/// right-to-left transform, an edited capture).
+fn fingerprint(config: &TrainConfig, views: &[View]) -> String {
+    // FNV-1a over the cameras' bits: a digest to compare, not a secret.
+    let mut digest: u64 = 0xcbf2_9ce4_8422_2325;
+    let mut add = |x: u32| {
+        for byte in x.to_le_bytes() {
+            digest = (digest ^ byte as u64).wrapping_mul(0x0100_0000_01b3);
+        }
+    };
+    for view in views {
+        let c = &view.camera;
+        c.viewmat.iter().flatten().for_each(|v| add(v.to_bits()));
+        [c.fx, c.fy, c.cx, c.cy, c.near, c.far]
+            .iter()
+            .for_each(|v| add(v.to_bits()));
+        add(c.width);
+        add(c.height);
+    }
+    format!("{config:?} views={} cameras={digest:016x}", views.len())
 }
 
 /// Training with optional resumption and checkpoints (see [`train`]).
@@ -501,7 +520,7 @@ pub fn train_resumable(
         return Err(SplatError::Invalid("no training views".into()));
     }
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed ^ 0x7a11);
-    let print = fingerprint(config, views.len());
+    let print = fingerprint(config, views);
     let mcmc = config.densification == Densification::Mcmc;
     let (mut s, first_step, extent, mut adam, mut grad2d_sum, mut grad2d_count, mut order) =
         match start {
@@ -1638,7 +1657,7 @@ mod tests {
         let other = TrainConfig { seed: 1, ..config };
         let err = train_resumable(
             &views,
-            Start::Resume(Box::new(state)),
+            Start::Resume(Box::new(state.clone())),
             &other,
             &Renderer::Cpu,
             None,
@@ -1646,6 +1665,19 @@ mod tests {
         )
         .unwrap_err();
         assert!(err.to_string().contains("other settings"), "{err}");
+        // So are views that moved, by as little as a micrometre.
+        let mut moved = views.clone();
+        moved[0].camera.viewmat[0][3] += 1e-6;
+        let err = train_resumable(
+            &moved,
+            Start::Resume(Box::new(state)),
+            &config,
+            &Renderer::Cpu,
+            None,
+            &mut |_, _, _| {},
+        )
+        .unwrap_err();
+        assert!(err.to_string().contains("other settings or views"), "{err}");
     }
 
     /// The cap on the count holds from the first step: a start above it, or

@@ -72,6 +72,8 @@ pub struct InspectArgs {
     #[arg(long, value_enum, default_value = "both", requires = "capture")]
     pub arm: crate::train::ArmSet,
     #[command(flatten)]
+    pub merge: crate::train::RightToLeftArg,
+    #[command(flatten)]
     pub colour: ColourMatchArgs,
     /// Render width, pixels.
     #[arg(long, default_value_t = 160)]
@@ -115,7 +117,12 @@ fn settings_from(args: &InspectArgs) -> Result<InspectSettings> {
     };
     let cameras = match &args.capture {
         None => None,
-        Some(path) => Some(capture_cameras(path, args.arm, args.units_per_metre)?),
+        Some(path) => Some(capture_cameras(
+            path,
+            args.arm,
+            args.merge.read(args.arm)?,
+            args.units_per_metre,
+        )?),
     };
     let mut settings = InspectSettings {
         units_per_metre: args.units_per_metre,
@@ -135,17 +142,19 @@ fn settings_from(args: &InspectArgs) -> Result<InspectSettings> {
     Ok(settings)
 }
 
-/// The cameras of `path`'s capture (`arm`'s frames, in that set's frame),
+/// The cameras of `path`'s capture (`arm`'s frames, in that set's frame,
+/// both arms merged by `right_to_left` or the handover estimate),
 /// camera-to-model with positions in model units.
 fn capture_cameras(
     path: &Path,
     arm: crate::train::ArmSet,
+    right_to_left: Option<Pose>,
     units_per_metre: f64,
 ) -> Result<omniscan_inspect::views::CameraSet> {
     let capture = omniscan_core::Capture::load(path)
         .with_context(|| format!("reading the capture {}", path.display()))?;
     let camera_to_model: Vec<Pose> =
-        omniscan_core::poses::camera_views(&capture, arm.view_set(&capture))
+        omniscan_core::poses::camera_views(&capture, arm.view_set(&capture, right_to_left))
             .into_iter()
             .map(|v| {
                 let mut pose = v.camera_to_object;

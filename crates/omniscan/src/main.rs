@@ -71,6 +71,8 @@ enum Command {
         capture: PathBuf,
         #[arg(long, value_enum)]
         arm: train::ArmSet,
+        #[command(flatten)]
+        merge: train::RightToLeftArg,
         #[arg(long)]
         out: PathBuf,
         /// Leave out mask_path (train on whole images).
@@ -419,11 +421,13 @@ fn run(cli: Cli) -> Result<()> {
         Command::ExportNerfstudio {
             capture,
             arm,
+            merge,
             out,
             no_masks,
         } => {
+            let right_to_left = merge.read(arm)?;
             let loaded = Capture::load(&capture)?;
-            let views = arm.view_set(&loaded);
+            let views = arm.view_set(&loaded, right_to_left);
             let summary = export_nerfstudio(
                 &loaded,
                 &out,

@@ -68,6 +68,11 @@ pub struct AlignArgs {
     /// Initial transform (JSON: a 4x4 matrix or {"transform": ...}); identity if absent.
     #[arg(long)]
     pub init: Option<PathBuf>,
+    /// Start from this capture's handover estimate T_lh⁻¹·T_rh instead, as the paper's merge
+    /// does: SOURCE is the right arm's model (or cloud), TARGET the left's, each in its gripper's
+    /// frame. The transform written then goes to `omniscan train --arm both --right-to-left`.
+    #[arg(long, conflicts_with = "init")]
+    pub handover: Option<PathBuf>,
     #[arg(long, value_enum, default_value = "auto")]
     pub method: Method,
     /// Correspondence distance, in the clouds' units (metres for captures); default: target extent / 50.
@@ -96,9 +101,16 @@ fn with_normals(cloud: &PointCloud) -> PointCloud {
 pub fn align(args: AlignArgs) -> Result<()> {
     let source = read_cloud(&args.source)?;
     let target = read_cloud(&args.target)?;
-    let init = match &args.init {
-        Some(p) => read_transform(p)?,
-        None => Pose::identity(),
+    let init = match (&args.init, &args.handover) {
+        (Some(p), _) => read_transform(p)?,
+        (None, Some(capture)) => {
+            let h = &omniscan_core::Capture::load(capture)?.file.handover;
+            omniscan_core::poses::handover_right_to_left(
+                &h.left_gripper_to_world.0,
+                &h.right_gripper_to_world.0,
+            )
+        }
+        (None, None) => Pose::identity(),
     };
     let max_distance = args.max_distance.unwrap_or(target.extent() / 50.0);
     if max_distance.is_nan() || max_distance <= 0.0 || max_distance.is_infinite() {

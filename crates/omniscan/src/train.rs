@@ -7,6 +7,7 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use serde_json::json;
 
+use omniscan_core::Pose;
 use omniscan_core::capture::{Arm, Capture};
 use omniscan_core::poses::ViewSet;
 use omniscan_splat::ply::write_splats;
@@ -19,17 +20,46 @@ use omniscan_splat::train::{
 pub enum ArmSet {
     Left,
     Right,
-    /// Both arms in the left gripper's frame, merged with the handover estimate T_lh⁻¹·T_rh.
+    /// Both arms in the left gripper's frame, merged with the handover estimate T_lh⁻¹·T_rh (or --right-to-left).
     Both,
 }
 
 impl ArmSet {
-    /// The capture's frames these arms stand for, and the frame they are in.
-    pub fn view_set(self, capture: &Capture) -> ViewSet {
-        match self {
-            ArmSet::Left => ViewSet::Arm(Arm::Left),
-            ArmSet::Right => ViewSet::Arm(Arm::Right),
-            ArmSet::Both => ViewSet::merged_from_handover(capture),
+    /// The capture's frames these arms stand for, and the frame they are in:
+    /// both arms merged by `right_to_left` (the right gripper's frame in the
+    /// left's) where given, else by the robot's handover estimate.
+    pub fn view_set(self, capture: &Capture, right_to_left: Option<Pose>) -> ViewSet {
+        match (self, right_to_left) {
+            (ArmSet::Left, _) => ViewSet::Arm(Arm::Left),
+            (ArmSet::Right, _) => ViewSet::Arm(Arm::Right),
+            (ArmSet::Both, Some(right_to_left)) => ViewSet::Merged { right_to_left },
+            (ArmSet::Both, None) => ViewSet::merged_from_handover(capture),
+        }
+    }
+}
+
+/// The option that replaces the handover estimate in a merged view set.
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct RightToLeftArg {
+    /// With --arm both: the right gripper's frame in the left's, in place of the handover
+    /// estimate T_lh⁻¹·T_rh. A JSON file from `omniscan align` (its `transform`) or a bare 4x4
+    /// row-major matrix, metres. The paper's merged model uses the handover estimate refined by
+    /// aligning the right arm's model onto the left's (`omniscan align right.ply left.ply
+    /// --handover CAPTURE`).
+    #[arg(long)]
+    pub right_to_left: Option<PathBuf>,
+}
+
+impl RightToLeftArg {
+    /// The transform the file names; refused unless `arm` is both.
+    pub fn read(&self, arm: ArmSet) -> Result<Option<Pose>> {
+        match (&self.right_to_left, arm) {
+            (None, _) => Ok(None),
+            (Some(path), ArmSet::Both) => Ok(Some(crate::registration::read_transform(path)?)),
+            (Some(path), _) => bail!(
+                "--right-to-left {}: only views of both arms (--arm both) are merged",
+                path.display()
+            ),
         }
     }
 }
@@ -46,6 +76,8 @@ pub struct TrainArgs {
     pub capture: PathBuf,
     #[arg(long, value_enum, default_value = "left")]
     pub arm: ArmSet,
+    #[command(flatten)]
+    pub merge: RightToLeftArg,
     /// Output model (3DGS PLY).
     #[arg(long)]
     pub out: PathBuf,
@@ -91,6 +123,11 @@ pub struct TrainArgs {
     /// Start from this point cloud instead (PLY, PCD or XYZ, with colours if it has them; a 3DGS PLY gives its centres), in the views' frame: the holding gripper's for a capture, metres.
     #[arg(long)]
     pub init: Option<PathBuf>,
+    /// With --arm both: also start from this point cloud (or splat model) in the right gripper's
+    /// frame, carried into the left's by the merge transform and joined to --init's points. The
+    /// paper's merged model starts from both arms' models: --init left.ply --init-right right.ply.
+    #[arg(long)]
+    pub init_right: Option<PathBuf>,
     /// Write the whole training state every N steps to OUT.checkpoint.safetensors (0: never); it is removed when training ends.
     #[arg(long, default_value_t = 500)]
     pub checkpoint_every: usize,
@@ -141,14 +178,34 @@ pub fn run(args: TrainArgs) -> Result<()> {
     if args.max_splats == 0 {
         bail!("--max-splats must be at least 1");
     }
-    if args.init.is_none() && !(1..=args.max_splats).contains(&args.initial_points) {
+    if args.init.is_none()
+        && args.init_right.is_none()
+        && !(1..=args.max_splats).contains(&args.initial_points)
+    {
         bail!(
             "--initial-points must be 1 to --max-splats ({}), got {}",
             args.max_splats,
             args.initial_points
         );
     }
-    let all = load_views(&args.capture, args.arm, args.downscale)?;
+    let right_to_left = args.merge.read(args.arm)?;
+    if let Some(path) = &args.init_right
+        && !matches!(args.arm, ArmSet::Both)
+    {
+        bail!(
+            "--init-right {}: only a model of both arms (--arm both) starts from the right arm's points",
+            path.display()
+        );
+    }
+    let (all, view_set) = load_views(&args.capture, args.arm, right_to_left, args.downscale)?;
+    // The merge the views were brought together by, for --init-right and the report.
+    let merged_by = match view_set {
+        Some(ViewSet::Merged { right_to_left }) => Some(right_to_left),
+        _ => None,
+    };
+    if args.init_right.is_some() && merged_by.is_none() {
+        bail!("--init-right needs a capture's views of both arms");
+    }
     let (train_views, test_views) =
         split_held_out_from(all, args.hold_out_every, args.hold_out_first);
     let start = Instant::now();
@@ -192,33 +249,46 @@ pub fn run(args: TrainArgs) -> Result<()> {
     };
     eprintln!("training on {}", renderer.describe());
     let initial = || -> Result<_> {
-        Ok(match &args.init {
-            Some(path) => {
-                let cloud = omniscan_register::cloud::read_cloud(path)?;
-                let points: Vec<[f32; 3]> = cloud
+        if args.init.is_none() && args.init_right.is_none() {
+            return initial_splats(&train_views, args.initial_points, args.sh_degree, args.seed)
+                .context("initialisation");
+        }
+        let (mut points, mut colours) = (Vec::new(), Vec::new());
+        let starts = [(&args.init, None), (&args.init_right, merged_by)];
+        for (path, to_views) in starts {
+            let Some(path) = path else { continue };
+            let cloud = omniscan_register::cloud::read_cloud(path)?;
+            let cloud = match to_views {
+                Some(pose) => cloud.transformed(&pose),
+                None => cloud,
+            };
+            points.extend(
+                cloud
                     .points
                     .iter()
-                    .map(|p| [p.x as f32, p.y as f32, p.z as f32])
-                    .collect();
-                let colours = if cloud.colors.len() == points.len() {
-                    cloud.colors.clone()
-                } else {
-                    vec![[0.5; 3]; points.len()]
-                };
-                if points.len() > args.max_splats {
-                    bail!(
-                        "--init {} has {} points, more than --max-splats {}: thin it (e.g. voxel-downsample it) or raise --max-splats",
-                        path.display(),
-                        points.len(),
-                        args.max_splats
-                    );
-                }
-                splats_from_points(&points, &colours, args.sh_degree)
-                    .with_context(|| format!("initialising from {}", path.display()))?
+                    .map(|p| [p.x as f32, p.y as f32, p.z as f32]),
+            );
+            if cloud.colors.len() == cloud.points.len() {
+                colours.extend_from_slice(&cloud.colors);
+            } else {
+                colours.extend(std::iter::repeat_n([0.5; 3], cloud.points.len()));
             }
-            None => initial_splats(&train_views, args.initial_points, args.sh_degree, args.seed)
-                .context("initialisation")?,
-        })
+        }
+        let named = [&args.init, &args.init_right]
+            .into_iter()
+            .flatten()
+            .map(|p| p.display().to_string())
+            .collect::<Vec<_>>()
+            .join(" and ");
+        if points.len() > args.max_splats {
+            bail!(
+                "--init {named}: {} points, more than --max-splats {}: thin them (e.g. voxel-downsample) or raise --max-splats",
+                points.len(),
+                args.max_splats
+            );
+        }
+        splats_from_points(&points, &colours, args.sh_degree)
+            .with_context(|| format!("initialising from {named}"))
     };
     let checkpoint_path = {
         let mut name = args.out.as_os_str().to_owned();
@@ -298,6 +368,13 @@ pub fn run(args: TrainArgs) -> Result<()> {
             "sh_rest_lr": config.sh_rest_lr,
             "max_splats": config.max_splats,
             "seed": config.seed,
+            "right_to_left": merged_by.map(|pose| json!({
+                "transform": omniscan_core::geometry::pose_to_rows(&pose),
+                "from": match &args.merge.right_to_left {
+                    Some(path) => path.display().to_string(),
+                    None => "handover estimate T_lh⁻¹·T_rh".to_string(),
+                },
+            })),
         },
         "test": eval,
     });
@@ -330,6 +407,8 @@ pub struct EvalArgs {
     pub capture: PathBuf,
     #[arg(long, value_enum, default_value = "left")]
     pub arm: ArmSet,
+    #[command(flatten)]
+    pub merge: RightToLeftArg,
     /// Shrink images by this integer factor before comparing.
     #[arg(long, default_value_t = 1)]
     pub downscale: u32,
@@ -362,24 +441,28 @@ fn load_lpips(
     })
 }
 
-/// The views of a capture (one arm, or both merged at the handover), or of a
-/// calibrated photo set's `cameras.json`.
+/// The views of a capture (one arm, or both merged at the handover or by
+/// `right_to_left`) and the set they are, or of a calibrated photo set's
+/// `cameras.json` (no set: it has no arms).
 fn load_views(
     path: &std::path::Path,
     arm: ArmSet,
+    right_to_left: Option<Pose>,
     downscale: u32,
-) -> Result<Vec<omniscan_splat::train::View>> {
+) -> Result<(Vec<omniscan_splat::train::View>, Option<ViewSet>)> {
     if path.extension().is_some_and(|e| e == "json") && !path.ends_with("capture.json") {
-        return Ok(omniscan_splat::train::views_from_cameras_json(
-            path, downscale,
-        )?);
+        if right_to_left.is_some() {
+            bail!(
+                "--right-to-left: {} is a photo set, whose views have no arms to merge",
+                path.display()
+            );
+        }
+        let views = omniscan_splat::train::views_from_cameras_json(path, downscale)?;
+        return Ok((views, None));
     }
     let capture = Capture::load(path)?;
-    Ok(views_from_capture(
-        &capture,
-        arm.view_set(&capture),
-        downscale,
-    )?)
+    let set = arm.view_set(&capture, right_to_left);
+    Ok((views_from_capture(&capture, set, downscale)?, Some(set)))
 }
 
 /// `omniscan eval`: PSNR/SSIM of a model against a capture's images, whole
@@ -392,7 +475,8 @@ pub fn eval(args: EvalArgs) -> Result<()> {
     } else {
         (omniscan_splat::ply::read_splats(&args.model)?, None)
     };
-    let views = load_views(&args.capture, args.arm, args.downscale)?;
+    let right_to_left = args.merge.read(args.arm)?;
+    let (views, _) = load_views(&args.capture, args.arm, right_to_left, args.downscale)?;
     // Each compared view keeps its index in the capture, for the per-view figures.
     let (training, held_out) = split_held_out_from(
         views.into_iter().enumerate().collect(),

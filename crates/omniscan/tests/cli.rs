@@ -638,6 +638,299 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
     }
 }
 
+/// Runs `omniscan` and parses its JSON report, failing with its stderr.
+fn omniscan_json(args: &[&str]) -> serde_json::Value {
+    let out = omniscan(args);
+    assert!(
+        out.status.success(),
+        "{args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+#[test]
+fn the_papers_merge_runs_from_the_command_line() {
+    // A capture whose object slipped 8° / 4 mm at the handover: the robot's
+    // estimate T_lh⁻¹·T_rh is off by that much.
+    let tmp = tempfile::tempdir().unwrap();
+    let capture = tmp.path().join("cap");
+    let cap = capture.to_str().unwrap();
+    let out = omniscan(&[
+        "sim",
+        "--object",
+        "builtin:remote",
+        "--out",
+        cap,
+        "--width",
+        "120",
+        "--height",
+        "90",
+        "--wrist-angles",
+        "8",
+        "--latitudes",
+        "3",
+        "--supersample",
+        "1",
+        "--no-empty-pass",
+        "--depth-noise-mm-at-1m",
+        "0",
+        "--slip-deg",
+        "8",
+        "--slip-mm",
+        "4",
+        "--seed",
+        "2",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let file: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(capture.join("capture.json")).unwrap())
+            .unwrap();
+    let truth = tmp.path().join("truth.json");
+    std::fs::write(
+        &truth,
+        serde_json::json!({ "transform": file["gt"]["right_to_left"] }).to_string(),
+    )
+    .unwrap();
+    let path = |name: &str| tmp.path().join(name).to_str().unwrap().to_string();
+    let train = |arm: &str, out: &str, steps: &str, extra: &[&str]| {
+        let mut a = vec![
+            "train",
+            cap,
+            "--arm",
+            arm,
+            "--out",
+            out,
+            "--steps",
+            steps,
+            "--downscale",
+            "1",
+            "--initial-points",
+            "1500",
+            "--sh-degree",
+            "1",
+            "--backend",
+            "cpu",
+            "--json",
+        ];
+        a.extend_from_slice(extra);
+        omniscan_json(&a)
+    };
+    // The merged model on the true transform fits its held-out views better
+    // than on the handover estimate, and the report says which it used.
+    let on_handover = train("both", &path("handover.ply"), "300", &[]);
+    let on_truth = train(
+        "both",
+        &path("truth.ply"),
+        "300",
+        &["--right-to-left", truth.to_str().unwrap()],
+    );
+    let figure = |r: &serde_json::Value, k: &str| r["test"][k].as_f64().unwrap();
+    assert!(
+        figure(&on_truth, "ssim_masked") > figure(&on_handover, "ssim_masked") + 0.03
+            && figure(&on_truth, "psnr") > figure(&on_handover, "psnr"),
+        "{on_truth} vs {on_handover}"
+    );
+    let used = &on_truth["settings"]["right_to_left"];
+    assert_eq!(used["from"], truth.to_str().unwrap());
+    let rows =
+        |v: &serde_json::Value| -> [[f64; 4]; 4] { serde_json::from_value(v.clone()).unwrap() };
+    let (recorded, truth_rows) = (rows(&used["transform"]), rows(&file["gt"]["right_to_left"]));
+    for (a, b) in recorded.iter().flatten().zip(truth_rows.iter().flatten()) {
+        assert!((a - b).abs() < 1e-12, "{recorded:?} vs {truth_rows:?}");
+    }
+    assert!(
+        on_handover["settings"]["right_to_left"]["from"]
+            .as_str()
+            .unwrap()
+            .contains("handover"),
+        "{on_handover}"
+    );
+    // `eval` merges the same way: its held-out figures are training's.
+    let eval = |extra: &[&str]| {
+        let mut a = vec![
+            "eval",
+            on_truth["model"].as_str().unwrap(),
+            cap,
+            "--arm",
+            "both",
+            "--held-out-every",
+            "8",
+            "--json",
+        ];
+        a.extend_from_slice(extra);
+        omniscan_json(&a)
+    };
+    let same = eval(&["--right-to-left", truth.to_str().unwrap()]);
+    assert_eq!(same["psnr_masked"], on_truth["test"]["psnr_masked"]);
+    assert!(
+        eval(&[])["psnr_masked"].as_f64().unwrap() < same["psnr_masked"].as_f64().unwrap(),
+        "{same}"
+    );
+    // The nerfstudio export moves the right arm's cameras, and only those.
+    let export = |name: &str, extra: &[&str]| -> Vec<serde_json::Value> {
+        let dir = path(name);
+        let mut a = vec!["export-nerfstudio", cap, "--arm", "both", "--out", &dir];
+        a.extend_from_slice(extra);
+        let out = omniscan(&a);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let text = std::fs::read_to_string(Path::new(&dir).join("transforms.json")).unwrap();
+        let v: serde_json::Value = serde_json::from_str(&text).unwrap();
+        v["frames"].as_array().unwrap().clone()
+    };
+    let (moved, kept) = (
+        export("ns_truth", &["--right-to-left", truth.to_str().unwrap()]),
+        export("ns_handover", &[]),
+    );
+    assert_eq!(moved.len(), 48);
+    let changed = moved
+        .iter()
+        .zip(&kept)
+        .filter(|(a, b)| a["transform_matrix"] != b["transform_matrix"])
+        .count();
+    assert_eq!(changed, 24);
+    // `align --handover` starts from the capture's estimate, as `--init`
+    // given that estimate does.
+    train("left", &path("left.ply"), "200", &[]);
+    train("right", &path("right.ply"), "200", &[]);
+    let (l, r) = (
+        rows(&file["handover"]["left_gripper_to_world"]),
+        rows(&file["handover"]["right_gripper_to_world"]),
+    );
+    // T_lh⁻¹·T_rh of rigid transforms: [Lᵀ | −Lᵀt] times R.
+    let mut estimate = [
+        [0.0, 0.0, 0.0, 0.0],
+        [0.0; 4],
+        [0.0; 4],
+        [0.0, 0.0, 0.0, 1.0],
+    ];
+    for i in 0..3 {
+        for j in 0..4 {
+            let rotated: f64 = (0..3).map(|k| l[k][i] * r[k][j]).sum();
+            let shift: f64 = if j == 3 {
+                (0..3).map(|k| l[k][i] * l[k][3]).sum()
+            } else {
+                0.0
+            };
+            estimate[i][j] = rotated - shift;
+        }
+    }
+    let handover = tmp.path().join("handover.json");
+    std::fs::write(&handover, serde_json::to_string(&estimate).unwrap()).unwrap();
+    let align = |init: &[&str], out: &str| {
+        let mut a = vec!["align", "right.ply", "left.ply", "--out", out, "--json"];
+        a.extend_from_slice(init);
+        let out = Command::new(env!("CARGO_BIN_EXE_omniscan"))
+            .current_dir(tmp.path())
+            .args(&a)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        serde_json::from_slice::<serde_json::Value>(&out.stdout).unwrap()
+    };
+    let from_capture = align(&["--handover", "cap"], "refined.json");
+    let from_file = align(&["--init", "handover.json"], "same.json");
+    let (a, b) = (
+        rows(&from_capture["transform"]),
+        rows(&from_file["transform"]),
+    );
+    for (x, y) in a.iter().flatten().zip(b.iter().flatten()) {
+        assert!((x - y).abs() < 1e-9, "{a:?} vs {b:?}");
+    }
+    assert!(
+        from_capture["fitness"].as_f64().unwrap() > 0.3,
+        "{from_capture}"
+    );
+    // The merged model starts from both arms' models: the right one's points
+    // carried into the left frame by the merge transform (one step barely moves them).
+    let centres = |p: &str| omniscan_register::cloud::read_cloud(Path::new(p)).unwrap();
+    let (left_points, right_points) = (centres(&path("left.ply")), centres(&path("right.ply")));
+    let truth_pose = omniscan_core::geometry::pose_from_rows(&truth_rows).unwrap();
+    let right_only = train(
+        "both",
+        &path("start.ply"),
+        "1",
+        &[
+            "--right-to-left",
+            truth.to_str().unwrap(),
+            "--init-right",
+            &path("right.ply"),
+        ],
+    );
+    assert_eq!(
+        right_only["splats"].as_u64().unwrap() as usize,
+        right_points.len()
+    );
+    let start = omniscan_splat::ply::read_splats(Path::new(&path("start.ply"))).unwrap();
+    let moved = right_points.transformed(&truth_pose);
+    let farthest = start
+        .means
+        .iter()
+        .zip(&moved.points)
+        .map(|(m, p)| {
+            ((m[0] as f64 - p.x).powi(2)
+                + (m[1] as f64 - p.y).powi(2)
+                + (m[2] as f64 - p.z).powi(2))
+            .sqrt()
+        })
+        .fold(0.0, f64::max);
+    assert!(farthest < 1e-4, "a start point moved {farthest} m");
+    let both = train(
+        "both",
+        &path("start.ply"),
+        "1",
+        &[
+            "--init",
+            &path("left.ply"),
+            "--init-right",
+            &path("right.ply"),
+        ],
+    );
+    assert_eq!(
+        both["splats"].as_u64().unwrap() as usize,
+        left_points.len() + right_points.len()
+    );
+    // Merging options are refused where nothing is merged, and a bad matrix is named.
+    let (scratch, right_model) = (path("x.ply"), path("right.ply"));
+    let not_rigid = tmp.path().join("scaled.json");
+    std::fs::write(&not_rigid, "[[2,0,0,0],[0,2,0,0],[0,0,2,0],[0,0,0,1]]").unwrap();
+    for (arm, flags, message) in [
+        (
+            "left",
+            &["--right-to-left", truth.to_str().unwrap()][..],
+            "only views of both arms",
+        ),
+        (
+            "right",
+            &["--init-right", &right_model][..],
+            "only a model of both arms",
+        ),
+        (
+            "both",
+            &["--right-to-left", not_rigid.to_str().unwrap()][..],
+            "scaled.json",
+        ),
+    ] {
+        let mut a = vec![
+            "train", cap, "--arm", arm, "--out", &scratch, "--steps", "1",
+        ];
+        a.extend_from_slice(flags);
+        assert_refused(&omniscan(&a), message);
+    }
+}
+
 #[test]
 fn inspect_names_the_defective_copy_and_writes_the_report() {
     let dir = tempfile::tempdir().unwrap();
