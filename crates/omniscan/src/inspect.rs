@@ -116,6 +116,9 @@ fn settings_from(args: &InspectArgs) -> Result<InspectSettings> {
         }
     };
     let cameras = match &args.capture {
+        None if args.merge.right_to_left.is_some() => {
+            bail!("--right-to-left places a capture's cameras: give the capture (--capture)")
+        }
         None => None,
         Some(path) => Some(capture_cameras(
             path,

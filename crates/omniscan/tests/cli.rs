@@ -929,6 +929,37 @@ fn the_papers_merge_runs_from_the_command_line() {
         a.extend_from_slice(flags);
         assert_refused(&omniscan(&a), message);
     }
+    let (left_model, truth_file) = (path("left.ply"), truth.to_str().unwrap());
+    for (args, message) in [
+        (
+            &[
+                "export-nerfstudio",
+                cap,
+                "--arm",
+                "left",
+                "--out",
+                &scratch,
+                "--right-to-left",
+                truth_file,
+            ][..],
+            "only views of both arms",
+        ),
+        (
+            &[
+                "inspect",
+                &left_model,
+                &right_model,
+                &left_model,
+                "--out",
+                &scratch,
+                "--right-to-left",
+                truth_file,
+            ][..],
+            "give the capture",
+        ),
+    ] {
+        assert_refused(&omniscan(args), message);
+    }
 }
 
 #[test]
