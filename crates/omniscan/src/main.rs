@@ -8,6 +8,7 @@ mod render;
 mod scan_bench;
 mod splat_bench;
 mod train;
+mod twin;
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -81,6 +82,8 @@ enum Command {
     },
     /// Train a splat model on a capture with the paper's masked losses (CPU, or a GPU with --backend).
     Train(train::TrainArgs),
+    /// A capture to its 360° twin: a model per arm, the right aligned onto the left from the handover, the merged model from both (resumable).
+    Twin(twin::TwinArgs),
     /// PSNR and SSIM of a splat model against a capture's views (whole and masked).
     Eval(train::EvalArgs),
     /// Render a splat model from orbiting cameras or a capture's cameras.
@@ -443,6 +446,7 @@ fn run(cli: Cli) -> Result<()> {
             );
         }
         Command::Align(args) => registration::align(args)?,
+        Command::Twin(args) => twin::run(args)?,
         Command::Inspect(args) => inspect::run(args)?,
         Command::Mask(args) => mask::run(args)?,
         Command::Bench {

@@ -99,6 +99,26 @@ fn with_normals(cloud: &PointCloud) -> PointCloud {
 }
 
 pub fn align(args: AlignArgs) -> Result<()> {
+    let report = align_clouds(&args)?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        println!(
+            "{}: fitness {:.4}, inlier RMSE {:.6}, {} iterations, {:.2} s; wrote {}",
+            report["method"].as_str().unwrap_or("?"),
+            report["fitness"].as_f64().unwrap_or(f64::NAN),
+            report["inlier_rmse"].as_f64().unwrap_or(f64::NAN),
+            report["iterations"],
+            report["seconds"].as_f64().unwrap_or(0.0),
+            args.out.display()
+        );
+    }
+    Ok(())
+}
+
+/// `omniscan align` without the printing: registers, writes `--out` and
+/// returns the report.
+pub fn align_clouds(args: &AlignArgs) -> Result<Value> {
     let source = read_cloud(&args.source)?;
     let target = read_cloud(&args.target)?;
     let init = match (&args.init, &args.handover) {
@@ -191,19 +211,7 @@ pub fn align(args: AlignArgs) -> Result<()> {
         "units": "transform maps SOURCE into TARGET, in the clouds' own units (metres for captures)",
     });
     omniscan_core::io::write_json_atomic(&args.out, &report)?;
-    if args.json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
-    } else {
-        println!(
-            "{method}: fitness {:.4}, inlier RMSE {:.6}, {} iterations, {:.2} s; wrote {}",
-            registration.fitness,
-            registration.inlier_rmse,
-            registration.iterations,
-            start.elapsed().as_secs_f64(),
-            args.out.display()
-        );
-    }
-    Ok(())
+    Ok(report)
 }
 
 #[derive(clap::Args)]

@@ -148,6 +148,32 @@ pub struct TrainArgs {
 }
 
 pub fn run(args: TrainArgs) -> Result<()> {
+    let report = train_capture(&args)?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        // Without held-out views (--hold-out-every 0) there is nothing to
+        // score: say so rather than print NaN.
+        let eval = &report["test"];
+        let scores = match (eval["psnr"].as_f64(), eval["psnr_masked"].as_f64()) {
+            (Some(psnr), Some(masked)) => {
+                format!("held-out views: PSNR {psnr:.2} dB, masked PSNR {masked:.2} dB")
+            }
+            _ => "no held-out views to score".to_string(),
+        };
+        println!(
+            "wrote {} ({} splats) in {:.0} s; {scores}",
+            args.out.display(),
+            report["splats"],
+            report["seconds"].as_f64().unwrap_or(0.0),
+        );
+    }
+    Ok(())
+}
+
+/// `omniscan train` without the printing: trains, writes the model and
+/// returns the report.
+pub fn train_capture(args: &TrainArgs) -> Result<serde_json::Value> {
     if args.sh_degree > 3 {
         bail!("--sh-degree must be 0-3");
     }
@@ -378,25 +404,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         },
         "test": eval,
     });
-    if args.json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
-    } else {
-        // Without held-out views (--hold-out-every 0) there is nothing to
-        // score: say so rather than print NaN.
-        let scores = match (eval["psnr"].as_f64(), eval["psnr_masked"].as_f64()) {
-            (Some(psnr), Some(masked)) => {
-                format!("held-out views: PSNR {psnr:.2} dB, masked PSNR {masked:.2} dB")
-            }
-            _ => "no held-out views to score".to_string(),
-        };
-        println!(
-            "wrote {} ({} splats) in {:.0} s; {scores}",
-            args.out.display(),
-            model.len(),
-            start.elapsed().as_secs_f64(),
-        );
-    }
-    Ok(())
+    Ok(report)
 }
 
 #[derive(clap::Args)]

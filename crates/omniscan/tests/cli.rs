@@ -963,6 +963,142 @@ fn the_papers_merge_runs_from_the_command_line() {
 }
 
 #[test]
+fn twin_builds_the_merged_model_in_stages_and_resumes_an_interrupted_run() {
+    let tmp = tempfile::tempdir().unwrap();
+    let capture = tmp.path().join("cap");
+    let out = omniscan(&[
+        "sim",
+        "--object",
+        "builtin:remote",
+        "--out",
+        capture.to_str().unwrap(),
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--wrist-angles",
+        "6",
+        "--latitudes",
+        "2",
+        "--supersample",
+        "1",
+        "--no-empty-pass",
+        "--slip-deg",
+        "4",
+        "--slip-mm",
+        "3",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let dir = tmp.path().join("twin");
+    let args = [
+        "twin",
+        capture.to_str().unwrap(),
+        "--out",
+        dir.to_str().unwrap(),
+        "--steps",
+        "1000",
+        "--downscale",
+        "1",
+        "--backend",
+        "cpu",
+        "--json",
+    ];
+    // Stopped while the left arm trains, after its first checkpoint (step 500).
+    let mut child = Command::new(env!("CARGO_BIN_EXE_omniscan"))
+        .args(args)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let checkpoint = dir.join("left.ply.checkpoint.safetensors");
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    while !checkpoint.is_file() {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "no checkpoint written"
+        );
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "twin ended before its first checkpoint"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert!(
+        !dir.join("left.ply").exists(),
+        "the left model was not finished"
+    );
+    // Run again: the left arm goes on from its checkpoint, the rest runs.
+    let summary = omniscan_json(&args);
+    let status = |s: &serde_json::Value, stage: &str| s["stages"][stage]["status"].clone();
+    assert_eq!(status(&summary, "left"), "resumed", "{summary}");
+    for stage in ["right", "align", "twin"] {
+        assert_eq!(status(&summary, stage), "ran", "{summary}");
+    }
+    assert!(!checkpoint.exists());
+    for file in [
+        "left.ply",
+        "right.ply",
+        "right_to_left.json",
+        "twin.ply",
+        "summary.json",
+    ] {
+        assert!(dir.join(file).is_file(), "{file}");
+    }
+    // The twin trained on both arms, from both models, merged by the refined transform.
+    let twin = &summary["stages"]["twin"]["report"];
+    assert_eq!(
+        twin["train_views"].as_u64().unwrap() + twin["test_views"].as_u64().unwrap(),
+        24
+    );
+    assert!(
+        twin["test"]["psnr_masked"].as_f64().unwrap() > 15.0,
+        "{twin}"
+    );
+    assert_eq!(
+        twin["settings"]["right_to_left"]["from"],
+        dir.join("right_to_left.json").to_str().unwrap()
+    );
+    let align = &summary["stages"]["align"]["report"];
+    assert!(align["fitness"].as_f64().unwrap() > 0.3, "{align}");
+    let error = &summary["alignment_error"];
+    assert!(
+        (error["handover_estimate"]["deg"].as_f64().unwrap() - 4.0).abs() < 1e-6,
+        "{error}"
+    );
+    assert!(error["refined"]["deg"].as_f64().is_some(), "{error}");
+    // A third run has nothing left to do.
+    let again = omniscan_json(&args);
+    for stage in ["left", "right", "align", "twin"] {
+        assert_eq!(status(&again, stage), "reused", "{again}");
+    }
+    assert_eq!(again["stages"]["twin"]["report"], *twin);
+    // A model made again makes everything that reads it again.
+    std::fs::remove_file(dir.join("right.ply")).unwrap();
+    let remade = omniscan_json(&args);
+    assert_eq!(status(&remade, "left"), "reused", "{remade}");
+    for stage in ["right", "align", "twin"] {
+        assert_eq!(status(&remade, stage), "ran", "{remade}");
+    }
+    // A capture that is not there is named.
+    let missing = tmp.path().join("nowhere");
+    assert_refused(
+        &omniscan(&[
+            "twin",
+            missing.to_str().unwrap(),
+            "--out",
+            dir.to_str().unwrap(),
+        ]),
+        "nowhere",
+    );
+}
+
+#[test]
 fn inspect_names_the_defective_copy_and_writes_the_report() {
     let dir = tempfile::tempdir().unwrap();
     let part = omniscan_inspect::generate::test_part([0.06, 0.04, 0.025], 0.0012);
