@@ -18,6 +18,28 @@ fn assert_refused(out: &Output, message: &str) {
     assert!(err.contains(message), "{err}");
 }
 
+/// Simulates the built-in remote into `dir` (no empty-gripper pass, no
+/// supersampling) with `flags` added: size, trajectory, slip, noise.
+fn simulate_remote(dir: &Path, flags: &[&str]) {
+    let mut args = vec![
+        "sim",
+        "--object",
+        "builtin:remote",
+        "--out",
+        dir.to_str().unwrap(),
+        "--supersample",
+        "1",
+        "--no-empty-pass",
+    ];
+    args.extend_from_slice(flags);
+    let out = omniscan(&args);
+    assert!(
+        out.status.success(),
+        "sim failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
 fn tiny_capture(dir: &Path) {
     let out = omniscan(&[
         "sim",
@@ -366,30 +388,20 @@ fn align_recovers_a_known_transform_and_reports_open3d_style_fields() {
 fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
     let tmp = tempfile::tempdir().unwrap();
     let capture = tmp.path().join("cap");
-    let out = omniscan(&[
-        "sim",
-        "--object",
-        "builtin:remote",
-        "--out",
-        capture.to_str().unwrap(),
-        "--width",
-        "160",
-        "--height",
-        "120",
-        "--wrist-angles",
-        "8",
-        "--latitudes",
-        "3",
-        "--supersample",
-        "1",
-        "--no-empty-pass",
-        "--depth-noise-mm-at-1m",
-        "0",
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    simulate_remote(
+        &capture,
+        &[
+            "--width",
+            "160",
+            "--height",
+            "120",
+            "--wrist-angles",
+            "8",
+            "--latitudes",
+            "3",
+            "--depth-noise-mm-at-1m",
+            "0",
+        ],
     );
     let model = tmp.path().join("model.ply");
     let run = |steps: &str| -> serde_json::Value {
@@ -656,36 +668,26 @@ fn the_papers_merge_runs_from_the_command_line() {
     let tmp = tempfile::tempdir().unwrap();
     let capture = tmp.path().join("cap");
     let cap = capture.to_str().unwrap();
-    let out = omniscan(&[
-        "sim",
-        "--object",
-        "builtin:remote",
-        "--out",
-        cap,
-        "--width",
-        "120",
-        "--height",
-        "90",
-        "--wrist-angles",
-        "8",
-        "--latitudes",
-        "3",
-        "--supersample",
-        "1",
-        "--no-empty-pass",
-        "--depth-noise-mm-at-1m",
-        "0",
-        "--slip-deg",
-        "8",
-        "--slip-mm",
-        "4",
-        "--seed",
-        "2",
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    simulate_remote(
+        &capture,
+        &[
+            "--width",
+            "120",
+            "--height",
+            "90",
+            "--wrist-angles",
+            "8",
+            "--latitudes",
+            "3",
+            "--depth-noise-mm-at-1m",
+            "0",
+            "--slip-deg",
+            "8",
+            "--slip-mm",
+            "4",
+            "--seed",
+            "2",
+        ],
     );
     let file: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(capture.join("capture.json")).unwrap())
@@ -966,32 +968,22 @@ fn the_papers_merge_runs_from_the_command_line() {
 fn twin_builds_the_merged_model_in_stages_and_resumes_an_interrupted_run() {
     let tmp = tempfile::tempdir().unwrap();
     let capture = tmp.path().join("cap");
-    let out = omniscan(&[
-        "sim",
-        "--object",
-        "builtin:remote",
-        "--out",
-        capture.to_str().unwrap(),
-        "--width",
-        "64",
-        "--height",
-        "48",
-        "--wrist-angles",
-        "6",
-        "--latitudes",
-        "2",
-        "--supersample",
-        "1",
-        "--no-empty-pass",
-        "--slip-deg",
-        "4",
-        "--slip-mm",
-        "3",
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    simulate_remote(
+        &capture,
+        &[
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--wrist-angles",
+            "6",
+            "--latitudes",
+            "2",
+            "--slip-deg",
+            "4",
+            "--slip-mm",
+            "3",
+        ],
     );
     let dir = tmp.path().join("twin");
     let args = [
