@@ -40,6 +40,9 @@ pub struct TwinArgs {
     pub downscale: u32,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Each training writes its whole state every N steps, to resume from if stopped (0: never).
+    #[arg(long, default_value_t = 500)]
+    pub checkpoint_every: usize,
     /// Where training runs: auto (a real GPU when there is one, else the CPU), cpu, or gpu.
     #[arg(long, default_value = "auto")]
     pub backend: omniscan_splat::backend::Backend,
@@ -71,13 +74,16 @@ struct Stage {
 /// to its end already and `output` is there. The record names the command
 /// before it runs, so an interrupted training (`checkpoint` there) resumes
 /// only under the same command; a checkpoint left by another is removed.
-/// With `inputs_changed` (a stage it reads from ran again) nothing of an
-/// earlier run is kept. `run` gets the command and whether to resume.
+/// The record also holds `capture`, a digest of the capture's file: an
+/// edited capture runs everything again. With `inputs_changed` (a stage it
+/// reads from ran again) nothing of an earlier run is kept either. `run`
+/// gets the command and whether to resume.
 fn stage(
     record: &Path,
     output: &Path,
     checkpoint: Option<&Path>,
     command: &[String],
+    capture: &str,
     inputs_changed: bool,
     run: impl FnOnce(&[String], bool) -> Result<Value>,
 ) -> Result<Stage> {
@@ -87,7 +93,7 @@ fn stage(
     let same = !inputs_changed
         && previous
             .as_ref()
-            .is_some_and(|p| p["command"] == json!(command));
+            .is_some_and(|p| p["command"] == json!(command) && p["capture"] == capture);
     if let Some(previous) = &previous
         && same
         && !previous["report"].is_null()
@@ -110,9 +116,11 @@ fn stage(
         }
         _ => false,
     };
-    omniscan_core::io::write_json_atomic(record, &json!({ "command": command, "report": null }))?;
+    let entry =
+        |report: &Value| json!({ "command": command, "capture": capture, "report": report });
+    omniscan_core::io::write_json_atomic(record, &entry(&Value::Null))?;
     let report = run(command, resume)?;
-    omniscan_core::io::write_json_atomic(record, &json!({ "command": command, "report": report }))?;
+    omniscan_core::io::write_json_atomic(record, &entry(&report))?;
     Ok(Stage {
         status: if resume { "resumed" } else { "ran" },
         report,
@@ -122,6 +130,17 @@ fn stage(
 /// Where the record of the stage that writes `output` goes: beside it, `NAME.record.json`.
 fn record_path(output: &Path) -> PathBuf {
     output.with_extension("record.json")
+}
+
+/// FNV-1a of the capture's `capture.json`, as hex: a digest to compare
+/// runs by, not a secret.
+fn capture_digest(capture: &omniscan_core::Capture) -> Result<String> {
+    let file = capture.resolve("capture.json");
+    let bytes = std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
+    let digest = bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| {
+        (h ^ b as u64).wrapping_mul(0x0100_0000_01b3)
+    });
+    Ok(format!("{digest:016x}"))
 }
 
 fn words(parts: &[&str]) -> Vec<String> {
@@ -154,15 +173,17 @@ pub fn run(args: TwinArgs) -> Result<()> {
 /// The four stages; returns the summary also written to `OUT/summary.json`.
 pub fn build_twin(args: &TwinArgs) -> Result<Value> {
     let capture = omniscan_core::Capture::load(&args.capture)?;
+    let digest = capture_digest(&capture)?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     let path = |name: &str| args.out.join(name);
     let text = |p: &Path| p.to_string_lossy().into_owned();
-    let (capture_path, steps, downscale, seed) = (
+    let (capture_path, steps, downscale, seed, every) = (
         text(&args.capture),
         args.steps.to_string(),
         args.downscale.to_string(),
         args.seed.to_string(),
+        args.checkpoint_every.to_string(),
     );
     let backend = serde_json::to_value(args.backend)?
         .as_str()
@@ -180,6 +201,8 @@ pub fn build_twin(args: &TwinArgs) -> Result<Value> {
             &seed,
             "--backend",
             &backend,
+            "--checkpoint-every",
+            &every,
         ]));
         command.extend_from_slice(extra);
         let mut checkpoint = out.as_os_str().to_owned();
@@ -191,6 +214,7 @@ pub fn build_twin(args: &TwinArgs) -> Result<Value> {
             out,
             Some(&checkpoint),
             &command,
+            &digest,
             inputs_changed,
             |command, resume| {
                 let mut parsed = TrainCommand::try_parse_from(command)?.args;
@@ -222,6 +246,7 @@ pub fn build_twin(args: &TwinArgs) -> Result<Value> {
         &transform,
         None,
         &command,
+        &digest,
         models_changed,
         |command, _| {
             eprintln!("aligning the right model onto the left");

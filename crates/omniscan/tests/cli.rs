@@ -992,14 +992,16 @@ fn twin_builds_the_merged_model_in_stages_and_resumes_an_interrupted_run() {
         "--out",
         dir.to_str().unwrap(),
         "--steps",
-        "1000",
+        "600",
+        "--checkpoint-every",
+        "100",
         "--downscale",
         "1",
         "--backend",
         "cpu",
         "--json",
     ];
-    // Stopped while the left arm trains, after its first checkpoint (step 500).
+    // Stopped while the left arm trains, after its first checkpoint (step 100).
     let mut child = Command::new(env!("CARGO_BIN_EXE_omniscan"))
         .args(args)
         .stdout(std::process::Stdio::null())
@@ -1070,6 +1072,17 @@ fn twin_builds_the_merged_model_in_stages_and_resumes_an_interrupted_run() {
         assert_eq!(status(&again, stage), "reused", "{again}");
     }
     assert_eq!(again["stages"]["twin"]["report"], *twin);
+    // An edited capture makes every stage again; here only its digest
+    // changes (one more space), so the stages rerun to the same models.
+    let file = capture.join("capture.json");
+    let mut text = std::fs::read_to_string(&file).unwrap();
+    text.push(' ');
+    std::fs::write(&file, text).unwrap();
+    let edited = omniscan_json(&args);
+    for stage in ["left", "right", "align", "twin"] {
+        assert_eq!(status(&edited, stage), "ran", "{edited}");
+    }
+    assert_eq!(edited["stages"]["twin"]["report"]["test"], twin["test"]);
     // A model made again makes everything that reads it again.
     std::fs::remove_file(dir.join("right.ply")).unwrap();
     let remade = omniscan_json(&args);
