@@ -112,6 +112,13 @@ impl PointCloud {
 
     /// Appends another cloud; attributes survive only if both have them.
     pub fn extend(&mut self, other: &PointCloud) {
+        // An empty cloud adds nothing and takes nothing away: it has no
+        // colours only because it has no points (a frame where the object
+        // left the view used to strip a whole scan's colours, and with them
+        // colored ICP).
+        if other.is_empty() {
+            return;
+        }
         let colors =
             self.has_colors() && other.has_colors() || self.is_empty() && other.has_colors();
         let normals =
@@ -692,6 +699,27 @@ mod tests {
             colors: vec![[1.0, 0.0, 0.5019608], [0.0, 1.0, 0.0]],
             normals: vec![Vector3::new(0.0, 0.0, 1.0), Vector3::new(1.0, 0.0, 0.0)],
         }
+    }
+
+    #[test]
+    fn extending_keeps_colours_and_normals_only_where_both_have_them() {
+        let mut joined = sample();
+        joined.extend(&PointCloud::default());
+        assert_eq!(joined, sample(), "an empty cloud changes nothing");
+        let mut from_empty = PointCloud::default();
+        from_empty.extend(&sample());
+        assert_eq!(from_empty, sample());
+        joined.extend(&sample());
+        assert_eq!(
+            (joined.len(), joined.colors.len(), joined.normals.len()),
+            (4, 4, 4)
+        );
+        let bare = PointCloud {
+            points: vec![Point3::origin()],
+            ..PointCloud::default()
+        };
+        joined.extend(&bare);
+        assert!(!joined.has_colors() && !joined.has_normals() && joined.len() == 5);
     }
 
     #[test]

@@ -33,7 +33,7 @@ pub enum Method {
     Colored,
     /// Generalized ICP, plane to plane (Segal et al. 2009; Open3D's epsilon 1e-3).
     Gicp,
-    /// The paper's rule: ICP and colored ICP from the initial transform, the better fitness wins.
+    /// The paper's rule: ICP and colored ICP from the initial transform, the better fitness wins (the lower RMSE within 0.02 of fitness).
     Auto,
     /// FPFH features, TEASER++-style and RANSAC hypotheses, refined by ICP; no initial transform needed.
     Global,

@@ -6,7 +6,8 @@
 //!    in its gripper's frame;
 //! 3. `align right.ply left.ply --handover CAPTURE`: the right model onto
 //!    the left from the robot's handover estimate T_lh⁻¹·T_rh, refined by
-//!    ICP and colored ICP, the better fitness winning (the paper's rule);
+//!    ICP and colored ICP, the better fitness winning (the paper's rule,
+//!    with near-ties to the lower RMSE);
 //! 4. `train --arm both --right-to-left` that transform, initialised from
 //!    both arms' models: the merged twin.
 //!
