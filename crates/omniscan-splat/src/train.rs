@@ -1653,31 +1653,26 @@ mod tests {
         .unwrap();
         assert_eq!(steps.first(), Some(&13));
         assert_eq!(resumed, straight, "bit-identical to the uninterrupted run");
-        // Other settings are refused.
-        let other = TrainConfig { seed: 1, ..config };
-        let err = train_resumable(
-            &views,
-            Start::Resume(Box::new(state.clone())),
-            &other,
-            &Renderer::Cpu,
-            None,
-            &mut |_, _, _| {},
-        )
-        .unwrap_err();
-        assert!(err.to_string().contains("other settings"), "{err}");
-        // So are views that moved, by as little as a micrometre.
+        // Other settings are refused, and so are views that moved, by as
+        // little as a micrometre.
+        let refusal = |views: &[View], config: &TrainConfig| {
+            train_resumable(
+                views,
+                Start::Resume(Box::new(state.clone())),
+                config,
+                &Renderer::Cpu,
+                None,
+                &mut |_, _, _| {},
+            )
+            .unwrap_err()
+            .to_string()
+        };
+        let err = refusal(&views, &TrainConfig { seed: 1, ..config });
+        assert!(err.contains("other settings or views"), "{err}");
         let mut moved = views.clone();
         moved[0].camera.viewmat[0][3] += 1e-6;
-        let err = train_resumable(
-            &moved,
-            Start::Resume(Box::new(state)),
-            &config,
-            &Renderer::Cpu,
-            None,
-            &mut |_, _, _| {},
-        )
-        .unwrap_err();
-        assert!(err.to_string().contains("other settings or views"), "{err}");
+        let err = refusal(&moved, &config);
+        assert!(err.contains("other settings or views"), "{err}");
     }
 
     /// The cap on the count holds from the first step: a start above it, or
