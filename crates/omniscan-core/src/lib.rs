@@ -4,6 +4,7 @@
 
 pub mod camera;
 pub mod capture;
+pub mod digest;
 pub mod error;
 pub mod geometry;
 pub mod image_io;

@@ -42,15 +42,18 @@ pub enum ViewSet {
     Merged { right_to_left: Pose },
 }
 
+/// The capture's recorded handover estimate T_lh⁻¹·T_rh (right gripper's
+/// frame to the left's).
+pub fn handover_estimate(capture: &Capture) -> Pose {
+    let h = &capture.file.handover;
+    handover_right_to_left(&h.left_gripper_to_world.0, &h.right_gripper_to_world.0)
+}
+
 impl ViewSet {
     /// Both arms merged with the robot's handover estimate T_lh⁻¹·T_rh.
     pub fn merged_from_handover(capture: &Capture) -> ViewSet {
-        let h = &capture.file.handover;
         ViewSet::Merged {
-            right_to_left: handover_right_to_left(
-                &h.left_gripper_to_world.0,
-                &h.right_gripper_to_world.0,
-            ),
+            right_to_left: handover_estimate(capture),
         }
     }
 }

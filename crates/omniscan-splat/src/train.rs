@@ -488,13 +488,8 @@ pub struct TrainState {
 /// with views that moved (a merged capture's right arm under another
 /// right-to-left transform, an edited capture).
 fn fingerprint(config: &TrainConfig, views: &[View]) -> String {
-    // FNV-1a over the cameras' bits: a digest to compare, not a secret.
-    let mut digest: u64 = 0xcbf2_9ce4_8422_2325;
-    let mut add = |x: u32| {
-        for byte in x.to_le_bytes() {
-            digest = (digest ^ byte as u64).wrapping_mul(0x0100_0000_01b3);
-        }
-    };
+    let mut digest = omniscan_core::digest::Digest::default();
+    let mut add = |x: u32| digest.add(&x.to_le_bytes());
     for view in views {
         let c = &view.camera;
         c.viewmat.iter().flatten().for_each(|v| add(v.to_bits()));
@@ -504,7 +499,7 @@ fn fingerprint(config: &TrainConfig, views: &[View]) -> String {
         add(c.width);
         add(c.height);
     }
-    format!("{config:?} views={} cameras={digest:016x}", views.len())
+    format!("{config:?} views={} cameras={}", views.len(), digest.hex())
 }
 
 /// Training with optional resumption and checkpoints (see [`train`]).

@@ -124,11 +124,7 @@ pub fn align_clouds(args: &AlignArgs) -> Result<Value> {
     let init = match (&args.init, &args.handover) {
         (Some(p), _) => read_transform(p)?,
         (None, Some(capture)) => {
-            let h = &omniscan_core::Capture::load(capture)?.file.handover;
-            omniscan_core::poses::handover_right_to_left(
-                &h.left_gripper_to_world.0,
-                &h.right_gripper_to_world.0,
-            )
+            omniscan_core::poses::handover_estimate(&omniscan_core::Capture::load(capture)?)
         }
         (None, None) => Pose::identity(),
     };
@@ -795,11 +791,7 @@ pub fn merge_scans(capture: &omniscan_core::Capture) -> Result<Value> {
     let voxel = 0.001;
     let left = voxel_downsample(&object_cloud(capture, Arm::Left, 4, 2)?, voxel);
     let right = voxel_downsample(&object_cloud(capture, Arm::Right, 4, 2)?, voxel);
-    let h = &capture.file.handover;
-    let init = omniscan_core::poses::handover_right_to_left(
-        &h.left_gripper_to_world.0,
-        &h.right_gripper_to_world.0,
-    );
+    let init = omniscan_core::poses::handover_estimate(capture);
     let (best, all) = refine_from_initial(
         &right,
         &left,

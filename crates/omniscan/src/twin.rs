@@ -12,10 +12,10 @@
 //!    both arms' models: the merged twin.
 //!
 //! Every stage writes its output atomically and a record of the command it
-//! ran (`OUTPUT.record.json`); `summary.json` gathers their reports. A second run reuses each stage whose record names
-//! the same command and whose output is there, and resumes an interrupted
-//! training from its checkpoint, so a long run stopped anywhere goes on
-//! where it stopped.
+//! ran (`OUTPUT.record.json`); `summary.json` gathers their reports. A
+//! second run reuses each stage whose record names the same command and
+//! whose output is there, and resumes an interrupted training from its
+//! checkpoint, so a long run stopped anywhere goes on where it stopped.
 
 use std::path::{Path, PathBuf};
 
@@ -133,15 +133,11 @@ fn record_path(output: &Path) -> PathBuf {
     output.with_extension("record.json")
 }
 
-/// FNV-1a of the capture's `capture.json`, as hex: a digest to compare
-/// runs by, not a secret.
+/// A digest of the capture's `capture.json`, to compare runs by.
 fn capture_digest(capture: &omniscan_core::Capture) -> Result<String> {
     let file = capture.resolve("capture.json");
     let bytes = std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
-    let digest = bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| {
-        (h ^ b as u64).wrapping_mul(0x0100_0000_01b3)
-    });
-    Ok(format!("{digest:016x}"))
+    Ok(omniscan_core::digest::Digest::of(&bytes))
 }
 
 fn words(parts: &[&str]) -> Vec<String> {
@@ -285,11 +281,7 @@ pub fn build_twin(args: &TwinArgs) -> Result<Value> {
     // A simulated capture knows the true transform: how far the handover
     // estimate and the refined one are from it.
     if let Some(gt) = &capture.file.gt {
-        let h = &capture.file.handover;
-        let estimate = omniscan_core::poses::handover_right_to_left(
-            &h.left_gripper_to_world.0,
-            &h.right_gripper_to_world.0,
-        );
+        let estimate = omniscan_core::poses::handover_estimate(&capture);
         let refined = crate::registration::read_transform(&transform)?;
         let error = |pose: &omniscan_core::Pose| {
             let (angle, distance) =
