@@ -99,6 +99,7 @@ pub fn good_copy(
     let mut out = Splats {
         sh_degree: model.sh_degree,
         antialiased: model.antialiased,
+        appearance: model.appearance,
         ..Splats::default()
     };
     for i in 0..model.len() {
@@ -620,6 +621,7 @@ fn select(model: &Splats, indices: &[usize]) -> Splats {
             .flat_map(|&i| model.sh[i * k..(i + 1) * k].iter().copied())
             .collect(),
         antialiased: model.antialiased,
+        appearance: model.appearance,
     }
 }
 

@@ -193,6 +193,7 @@ pub fn render_views_on(
 fn render_settings(model: &Splats) -> Settings<f32> {
     Settings {
         mode: model.render_mode(),
+        appearance: model.appearance,
         ..Settings::default()
     }
 }

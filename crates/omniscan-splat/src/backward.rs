@@ -24,8 +24,9 @@ use rayon::prelude::*;
 
 use crate::Real;
 use crate::raster::{
-    Camera, Colors, Gaussians, LANES, Mode, Packed, Projected, Settings, SubTiles, TILE, TileBins,
-    ViewGeometry, bin_tiles, composite_lanes, covariance, lane_centres, lane_pixel, quat_to_rotmat,
+    Appearance, Camera, Colors, Gaussians, LANES, Mode, Packed, Projected, Settings, SubTiles,
+    TILE, TileBins, ViewGeometry, bin_tiles, composite_lanes, covariance, lane_centres, lane_pixel,
+    quat_to_rotmat, rig_direction,
 };
 use crate::sh;
 
@@ -321,13 +322,19 @@ fn project_backward<F: Real>(
             // Colour: through the clamp, to RGB or SH (and the SH view direction).
             let mut d_pc = [F::zero(); 3];
             let mut d_mean = [F::zero(); 3];
+            let mut d_rig_axis = [F::zero(); 3];
+            let mut rig_axis = None;
             match &g.colors {
                 Colors::Rgb(_) => d_colors_out[0] = colors_view[i],
                 Colors::Sh { degree, coeffs } => {
                     let k = sh::coefficients(*degree);
                     let dvec = [m[0] - campos[0], m[1] - campos[1], m[2] - campos[2]];
                     let len = (dvec[0] * dvec[0] + dvec[1] * dvec[1] + dvec[2] * dvec[2]).sqrt();
-                    let dir = dvec.map(|t| t / len);
+                    let rig = match settings.appearance {
+                        Appearance::ViewDirection => None,
+                        Appearance::FixedRig => Some(rig_direction(&rot, g.quats[i], g.scales[i])),
+                    };
+                    let dir = rig.map_or_else(|| dvec.map(|t| t / len), |r| r.0);
                     let raw = sh::evaluate(*degree, dir, &coeffs[i * k..(i + 1) * k]);
                     let d_raw: [F; 3] = [0, 1, 2].map(|ch| {
                         if raw[ch] + F::c(0.5) < F::zero() {
@@ -350,10 +357,23 @@ fn project_backward<F: Real>(
                             d_dir[a] = d_dir[a] + dbasis[kk][a] * s;
                         }
                     }
-                    // Through the normalisation d = v/|v|.
-                    let dot = d_dir[0] * dir[0] + d_dir[1] * dir[1] + d_dir[2] * dir[2];
-                    for a in 0..3 {
-                        d_mean[a] = d_mean[a] + (d_dir[a] - dir[a] * dot) / len;
+                    match rig {
+                        // Through the normalisation d = v/|v|.
+                        None => {
+                            let dot = d_dir[0] * dir[0] + d_dir[1] * dir[1] + d_dir[2] * dir[2];
+                            for a in 0..3 {
+                                d_mean[a] = d_mean[a] + (d_dir[a] - dir[a] * dot) / len;
+                            }
+                        }
+                        // d = sign · rot · r[:, axis]: into that column of
+                        // the splat's rotation (the axis choice and the sign
+                        // are piecewise constant).
+                        Some((_, axis, sign)) => {
+                            for (b, d_rb) in d_rig_axis.iter_mut().enumerate() {
+                                *d_rb = sign * (0..3).map(|a| rot[a][b] * d_dir[a]).sum::<F>();
+                            }
+                            rig_axis = Some(axis);
+                        }
                     }
                 }
             }
@@ -499,6 +519,11 @@ fn project_backward<F: Real>(
                     d_scale_out[b] = d_scale_out[b] + d_m[a][b] * r[a][b];
                 }
             }
+            if let Some(axis) = rig_axis {
+                for (row, d) in d_r.iter_mut().zip(d_rig_axis) {
+                    row[axis] = row[axis] + d;
+                }
+            }
             // Rotation matrix to the normalised quaternion, then through the normalisation.
             let q = g.quats[i];
             let norm = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
@@ -562,7 +587,7 @@ mod tests {
         Vec<f64>,
     );
 
-    fn scene(mode: Mode, sh_degree: Option<usize>) -> Scene {
+    fn scene(mode: Mode, sh_degree: Option<usize>, appearance: Appearance) -> Scene {
         let mut r = Lcg(7);
         let n = 12;
         let mut g = Gaussians {
@@ -620,6 +645,7 @@ mod tests {
             eps2d: 0.3,
             mode,
             background: [0.1, 0.2, 0.3],
+            appearance,
         };
         let px = (camera.width * camera.height) as usize;
         let w_rgb = (0..px)
@@ -655,8 +681,13 @@ mod tests {
 
     #[test]
     fn gradients_agree_with_central_differences() {
-        for (mode, sh_degree) in [(Mode::Classic, None), (Mode::Antialiased, Some(2))] {
-            let (g, camera, settings, w_rgb, w_a) = scene(mode, sh_degree);
+        for (mode, sh_degree, appearance) in [
+            (Mode::Classic, None, Appearance::ViewDirection),
+            (Mode::Antialiased, Some(2), Appearance::ViewDirection),
+            // The colour depends on the rotation through the splat's normal.
+            (Mode::Classic, Some(3), Appearance::FixedRig),
+        ] {
+            let (g, camera, settings, w_rgb, w_a) = scene(mode, sh_degree, appearance);
             let (p, _) = render(&g, &camera, &settings);
             let grads = backward(&g, &camera, &settings, &p, &w_rgb, &w_a);
             let h = 1e-6;
@@ -672,7 +703,7 @@ mod tests {
             let compare = |name: &str, analytic: f64, fd: f64| {
                 assert!(
                     (analytic - fd).abs() <= 1e-4 * (1.0 + fd.abs()),
-                    "{mode:?} {name}: analytic {analytic} vs numeric {fd}"
+                    "{mode:?} {appearance:?} {name}: analytic {analytic} vs numeric {fd}"
                 );
             };
             for i in 0..g.means.len() {
@@ -720,7 +751,8 @@ mod tests {
     /// alone gives that pixel's, for every pixel in turn.
     #[test]
     fn absolute_mean2d_gradients_sum_each_pixels_own() {
-        let (g, camera, settings, w_rgb, w_a) = scene(Mode::Classic, Some(1));
+        let (g, camera, settings, w_rgb, w_a) =
+            scene(Mode::Classic, Some(1), Appearance::ViewDirection);
         let (p, _) = render(&g, &camera, &settings);
         let all = backward(&g, &camera, &settings, &p, &w_rgb, &w_a);
         let mut summed = vec![[0.0; 2]; g.means.len()];

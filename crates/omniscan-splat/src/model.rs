@@ -19,6 +19,8 @@ pub struct Splats {
     pub sh: Vec<[f32; 3]>,
     /// Trained with the antialiased (Mip-Splatting) opacity compensation.
     pub antialiased: bool,
+    /// What the SH are a function of (see [`crate::raster::Appearance`]).
+    pub appearance: crate::raster::Appearance,
 }
 
 impl Splats {

@@ -3,9 +3,15 @@
 //! properties found by name in any order, ASCII or binary; `f_rest` is
 //! channel-major (index = channel·(K−1) + k−1) and its count gives the SH
 //! degree. A `comment SplatRenderMode: mip` header line marks antialiased
-//! models. Also the headerless `.splat` format of web viewers.
+//! models, and `comment SplatAppearance: fixed-rig` models whose SH are a
+//! function of the splat's normal in the camera's frame
+//! ([`crate::raster::Appearance::FixedRig`]; other readers take them for
+//! ordinary models, right in their base colour). Also the headerless `.splat` format of web viewers.
 
 use std::path::Path;
+
+/// The header comment of a [`crate::raster::Appearance::FixedRig`] model.
+const FIXED_RIG_COMMENT: &str = "SplatAppearance: fixed-rig";
 
 use crate::sh::{C0, coefficients};
 use crate::{SplatError, Splats};
@@ -53,6 +59,13 @@ pub fn splats_from_ply(ply: &PlyFile) -> Result<Splats, String> {
         .comments
         .iter()
         .any(|c| c.trim().eq_ignore_ascii_case("SplatRenderMode: mip"));
+    if ply
+        .comments
+        .iter()
+        .any(|c| c.trim().eq_ignore_ascii_case(FIXED_RIG_COMMENT))
+    {
+        s.appearance = crate::raster::Appearance::FixedRig;
+    }
     for i in 0..n {
         s.means.push([x[i], y[i], z[i]].map(|v| v as f32));
         s.log_scales
@@ -123,12 +136,14 @@ pub fn splats_to_ply(s: &Splats) -> PlyFile {
         );
     }
     let mode = if s.antialiased { "mip" } else { "default" };
+    let mut comments = vec![format!("SplatRenderMode: {mode}")];
+    if s.appearance == crate::raster::Appearance::FixedRig {
+        comments.push(FIXED_RIG_COMMENT.into());
+    }
+    comments.push("written by omniscan".into());
     PlyFile {
         format: Format::BinaryLittleEndian,
-        comments: vec![
-            format!("SplatRenderMode: {mode}"),
-            "written by omniscan".into(),
-        ],
+        comments,
         elements: vec![Element {
             name: "vertex".into(),
             count: n,
@@ -198,6 +213,11 @@ mod tests {
                 .map(|j| [j as f32 * 0.01, -(j as f32) * 0.02, 0.5])
                 .collect(),
             antialiased: degree == 2,
+            appearance: if degree == 1 {
+                crate::raster::Appearance::FixedRig
+            } else {
+                crate::raster::Appearance::ViewDirection
+            },
         }
     }
 

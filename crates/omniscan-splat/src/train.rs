@@ -621,6 +621,7 @@ pub fn train_resumable(
             eps2d: 0.3,
             mode: s.render_mode(),
             background,
+            appearance: s.appearance,
         };
         let t = step as i32;
         let progress_fraction = step as f32 / config.steps as f32;
@@ -910,6 +911,7 @@ fn densify(
     let mut out = Splats {
         sh_degree: s.sh_degree,
         antialiased: s.antialiased,
+        appearance: s.appearance,
         ..Default::default()
     };
     for &i in &keep {
@@ -1145,6 +1147,7 @@ pub fn evaluate(
         eps2d: 0.3,
         mode: model.render_mode(),
         background: [0.0; 3],
+        appearance: model.appearance,
     };
     let (mut p_all, mut s_all, mut p_mask, mut s_mask) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
@@ -1551,6 +1554,7 @@ mod tests {
                     .map(|_| [0, 1, 2].map(|_| rng.random_range(-1.0f32..1.0)))
                     .collect(),
                 antialiased: false,
+                appearance: Default::default(),
             }
         };
         let truth = random_splats(150, 0).gaussians::<f32>();

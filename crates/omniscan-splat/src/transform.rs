@@ -12,6 +12,7 @@
 
 use nalgebra::{DMatrix, Rotation3, UnitQuaternion, Vector3};
 
+use crate::raster::Appearance;
 use crate::sh::{basis, coefficients};
 use crate::{SplatError, Splats};
 use omniscan_core::Pose;
@@ -62,7 +63,12 @@ impl Splats {
         let q_r: UnitQuaternion<f64> = pose.rotation;
         let ln_s = scale.ln() as f32;
         let k = self.sh_coefficients();
-        let bands = band_rotations(self.sh_degree, &rotation);
+        // Fixed-rig SH are a function of the normal in the camera's frame,
+        // which moving the model and its cameras together leaves as it was.
+        let bands = match self.appearance {
+            Appearance::ViewDirection => band_rotations(self.sh_degree, &rotation),
+            Appearance::FixedRig => Vec::new(),
+        };
         let mut out = self.clone();
         for i in 0..self.len() {
             let m = Vector3::from(self.means[i].map(|v| v as f64));
@@ -94,7 +100,7 @@ impl Splats {
 #[cfg(test)]
 mod tests {
     use crate::Splats;
-    use crate::raster::{Camera, Settings, render};
+    use crate::raster::{Appearance, Camera, Settings, render};
     use nalgebra::{Point3, Vector3};
     use omniscan_core::Pose;
     use omniscan_core::geometry::look_at;
@@ -119,6 +125,7 @@ mod tests {
                 .map(|j| [0.3 * f(j, 9.0), 0.3 * f(j, 10.0), 0.3 * f(j, 11.0)])
                 .collect(),
             antialiased: false,
+            appearance: Default::default(),
         }
     }
 
@@ -145,13 +152,25 @@ mod tests {
 
     #[test]
     fn moving_model_and_camera_together_leaves_the_image_unchanged() {
-        let m = model();
+        for appearance in [Appearance::ViewDirection, Appearance::FixedRig] {
+            moved_with_the_camera(appearance);
+        }
+    }
+
+    fn moved_with_the_camera(appearance: Appearance) {
+        let m = Splats {
+            appearance,
+            ..model()
+        };
         let eye = look_at(
             &Point3::new(0.4, -1.5, 0.6),
             &Point3::origin(),
             &Vector3::z(),
         );
-        let settings = Settings::default();
+        let settings = Settings {
+            appearance,
+            ..Settings::default()
+        };
         let (_, before) = render(&m.gaussians::<f64>(), &camera(&eye), &settings);
         let pose = Pose::new(Vector3::new(0.2, -0.1, 0.5), Vector3::new(0.7, -1.1, 2.3));
         for scale in [1.0, 2.5] {
@@ -170,7 +189,10 @@ mod tests {
                 .zip(&after.rgb)
                 .flat_map(|(a, b)| (0..3).map(move |c| (a[c] - b[c]).abs()))
                 .fold(0.0, f64::max);
-            assert!(worst < 2e-4, "scale {scale}: colours differ by {worst}");
+            assert!(
+                worst < 2e-4,
+                "{appearance:?}, scale {scale}: colours differ by {worst}"
+            );
             let alpha = before
                 .alpha
                 .iter()

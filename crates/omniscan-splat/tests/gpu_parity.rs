@@ -3,7 +3,9 @@
 //! mesa-vulkan-drivers`), which `.ci/run` installs before running them.
 
 use omniscan_splat::gpu::{DeviceChoice, GpuRenderer};
-use omniscan_splat::raster::{Camera, Colors, Gaussians, Mode, Render, Settings, render};
+use omniscan_splat::raster::{
+    Appearance, Camera, Colors, Gaussians, Mode, Render, Settings, render,
+};
 
 struct Lcg(u64);
 
@@ -141,10 +143,31 @@ fn renderer() -> GpuRenderer {
 #[ignore = "needs a Vulkan device (lavapipe: apt-get install mesa-vulkan-drivers)"]
 fn gpu_images_match_the_cpu_reference() {
     let gpu = renderer();
-    for (degree, mode, background) in [
-        (Some(3), Mode::Classic, [0.0, 0.0, 0.0]),
-        (None, Mode::Antialiased, [0.2, 0.5, 0.9]),
-        (Some(1), Mode::Classic, [1.0, 1.0, 1.0]),
+    for (degree, mode, background, appearance) in [
+        (
+            Some(3),
+            Mode::Classic,
+            [0.0, 0.0, 0.0],
+            Appearance::ViewDirection,
+        ),
+        (
+            None,
+            Mode::Antialiased,
+            [0.2, 0.5, 0.9],
+            Appearance::ViewDirection,
+        ),
+        (
+            Some(1),
+            Mode::Classic,
+            [1.0, 1.0, 1.0],
+            Appearance::ViewDirection,
+        ),
+        (
+            Some(3),
+            Mode::Classic,
+            [0.0, 0.0, 0.0],
+            Appearance::FixedRig,
+        ),
     ] {
         // 100x75 leaves partial tiles at the right and bottom.
         let g = scene(3000, degree, 11);
@@ -153,11 +176,12 @@ fn gpu_images_match_the_cpu_reference() {
             eps2d: 0.3,
             mode,
             background,
+            appearance,
         };
         let (_, cpu) = render(&g, &cam, &settings);
         let got = gpu.render(&g, &cam, &settings).unwrap();
         let (rgb, alpha, depth, off) = compare(&cpu, &got);
-        let label = format!("{} {degree:?} {mode:?}", gpu.adapter());
+        let label = format!("{} {degree:?} {mode:?} {appearance:?}", gpu.adapter());
         eprintln!(
             "{label}: max |Δrgb| {rgb:.2e}, |Δalpha| {alpha:.2e}, relative |Δdepth| {depth:.2e}, pixels off by > 1e-4: {:.3}%",
             100.0 * off
@@ -200,6 +224,7 @@ fn gpu_handles_empty_scenes_and_many_tiles() {
         eps2d: 0.3,
         mode: Mode::Classic,
         background: [0.25, 0.5, 0.75],
+        appearance: Appearance::ViewDirection,
     };
     // Nothing to draw: the background everywhere.
     let empty = scene(0, None, 1);
@@ -241,10 +266,11 @@ fn gpu_gradients_match_the_cpu_reference() {
     use omniscan_splat::backward::backward;
     use omniscan_splat::raster::{project, rasterize};
     let gpu = renderer();
-    for (degree, mode) in [
-        (Some(3), Mode::Classic),
-        (None, Mode::Antialiased),
-        (Some(2), Mode::Antialiased),
+    for (degree, mode, appearance) in [
+        (Some(3), Mode::Classic, Appearance::ViewDirection),
+        (None, Mode::Antialiased, Appearance::ViewDirection),
+        (Some(2), Mode::Antialiased, Appearance::ViewDirection),
+        (Some(3), Mode::Classic, Appearance::FixedRig),
     ] {
         let g = scene(2000, degree, 23);
         let cam = camera(96, 72);
@@ -252,6 +278,7 @@ fn gpu_gradients_match_the_cpu_reference() {
             eps2d: 0.3,
             mode,
             background: [0.3, 0.6, 0.1],
+            appearance,
         };
         let p = project(&g, &cam, &settings);
         let cpu_render = rasterize(&p, cam.width, cam.height, settings.background);
@@ -268,7 +295,7 @@ fn gpu_gradients_match_the_cpu_reference() {
         let (got, visible) = gpu.backward(&frame, &d_rgb, &d_alpha).unwrap();
         let cpu_visible: Vec<bool> = (0..g.means.len()).map(|i| p.visible(i)).collect();
         assert_eq!(visible, cpu_visible, "visibility");
-        let label = format!("{degree:?} {mode:?}");
+        let label = format!("{degree:?} {mode:?} {appearance:?}");
         let errors = [
             ("means2d", relative(&cpu.means2d, &got.means2d)),
             ("means2d_abs", relative(&cpu.means2d_abs, &got.means2d_abs)),
@@ -346,6 +373,7 @@ fn training_on_the_gpu_follows_the_cpu_reference() {
         sh_degree: 1,
         sh: coeffs.clone(),
         antialiased: false,
+        appearance: Appearance::ViewDirection,
     };
     let adaptive = TrainConfig {
         densify_from: 10,
@@ -365,11 +393,16 @@ fn training_on_the_gpu_follows_the_cpu_reference() {
         max_splats: 320,
         ..TrainConfig::mcmc(30)
     };
-    for (label, config) in [
-        ("adaptive", adaptive),
-        ("absolute gradients", absolute),
-        ("mcmc", mcmc),
+    for (label, config, appearance) in [
+        ("adaptive", adaptive, Appearance::ViewDirection),
+        ("absolute gradients", absolute, Appearance::ViewDirection),
+        ("mcmc", mcmc, Appearance::ViewDirection),
+        ("fixed rig", adaptive, Appearance::FixedRig),
     ] {
+        let splats = Splats {
+            appearance,
+            ..splats.clone()
+        };
         let mut cpu_losses = Vec::new();
         let cpu = train(
             &views,
@@ -438,6 +471,7 @@ fn mcmc_noise_on_the_gpu_matches_the_cpu() {
         sh_degree: 1,
         sh: coeffs.clone(),
         antialiased: false,
+        appearance: Appearance::ViewDirection,
     };
     let gpu = renderer();
     let k = splats.sh_coefficients();

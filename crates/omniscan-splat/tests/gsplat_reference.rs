@@ -219,6 +219,7 @@ fn case_inputs(d: &Value) -> (Gaussians<f64>, Camera<f64>, Settings<f64>) {
             eps2d: cfg["eps2d"].as_f64().unwrap(),
             mode,
             background: [bg[0], bg[1], bg[2]],
+            ..Settings::default()
         },
     )
 }

@@ -110,6 +110,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         eps2d: 0.3,
         mode: model.render_mode(),
         background: [args.background[0], args.background[1], args.background[2]],
+        appearance: model.appearance,
     };
     let gaussians = model.gaussians::<f32>();
     let renderer = Renderer::new(args.backend)?;

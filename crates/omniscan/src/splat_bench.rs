@@ -90,6 +90,7 @@ fn splats_from(g: &Gaussians<f32>) -> omniscan_splat::Splats {
         sh_degree: *degree,
         sh: coeffs.clone(),
         antialiased: false,
+        appearance: Default::default(),
     }
 }
 

@@ -11,6 +11,7 @@ use omniscan_core::Pose;
 use omniscan_core::capture::{Arm, Capture};
 use omniscan_core::poses::ViewSet;
 use omniscan_splat::ply::write_splats;
+use omniscan_splat::raster::Appearance;
 use omniscan_splat::train::{
     Checkpoints, Densification, Start, TrainConfig, initial_splats, splats_from_points,
     split_held_out, split_held_out_from, train, train_resumable, views_from_capture,
@@ -64,6 +65,17 @@ impl RightToLeftArg {
     }
 }
 
+/// What the splats' spherical harmonics are a function of.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum AppearanceArg {
+    /// fixed-rig for a robot's capture, view-direction for a photo set.
+    Auto,
+    /// The viewing direction in the model's frame (3DGS; lights fixed to the object).
+    ViewDirection,
+    /// The splat's normal in the camera's frame (camera and lights fixed, the object turned in the gripper).
+    FixedRig,
+}
+
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum DensificationArg {
     Adaptive,
@@ -102,6 +114,9 @@ pub struct TrainArgs {
     /// Train an antialiased model (Mip-Splatting's 2D filter with opacity compensation, gsplat's `antialiased` mode): renders stay free of aliasing when viewed smaller than trained.
     #[arg(long)]
     pub antialiased: bool,
+    /// What view-dependent colour depends on. In the paper's scan the camera and the lights stay put while the gripper turns the object, so a surface's shading follows its normal in the camera's frame (fixed-rig); 3DGS's viewing direction cannot tell apart the two arms' views of one side under differently turned light, and a merged model blurs between them. fixed-rig models are marked in the PLY header; other viewers show them right in their base colour.
+    #[arg(long, value_enum, default_value = "auto")]
+    pub appearance: AppearanceArg,
     /// Densify by the per-pixel screen-space gradients summed in absolute value (AbsGS, gsplat's `absgrad`), so large splats over fine texture split; the default threshold becomes 0.0008. Adaptive densification only.
     #[arg(long)]
     pub absgrad: bool,
@@ -232,6 +247,11 @@ pub fn train_capture(args: &TrainArgs) -> Result<serde_json::Value> {
     if args.init_right.is_some() && merged_by.is_none() {
         bail!("--init-right needs a capture's views of both arms");
     }
+    let appearance = match args.appearance {
+        AppearanceArg::Auto if view_set.is_some() => Appearance::FixedRig,
+        AppearanceArg::Auto | AppearanceArg::ViewDirection => Appearance::ViewDirection,
+        AppearanceArg::FixedRig => Appearance::FixedRig,
+    };
     let (train_views, test_views) =
         split_held_out_from(all, args.hold_out_every, args.hold_out_first);
     let start = Instant::now();
@@ -329,6 +349,8 @@ pub fn train_capture(args: &TrainArgs) -> Result<serde_json::Value> {
             );
         }
         let state = omniscan_splat::checkpoint::load(&checkpoint_path)?;
+        resumable_as(&state.splats, appearance, args.antialiased)
+            .with_context(|| format!("--resume: {}", checkpoint_path.display()))?;
         eprintln!(
             "resuming after step {} from {}",
             state.step,
@@ -338,6 +360,7 @@ pub fn train_capture(args: &TrainArgs) -> Result<serde_json::Value> {
     } else {
         let mut splats = initial()?;
         splats.antialiased = args.antialiased;
+        splats.appearance = appearance;
         Start::Fresh(splats)
     };
     let mut save = |state: &omniscan_splat::train::TrainState| {
@@ -389,6 +412,10 @@ pub fn train_capture(args: &TrainArgs) -> Result<serde_json::Value> {
             "absolute_gradients": config.absolute_gradients,
             "grad_threshold": config.grad_threshold,
             "antialiased": model.antialiased,
+            "appearance": match model.appearance {
+                Appearance::ViewDirection => "view-direction",
+                Appearance::FixedRig => "fixed-rig",
+            },
             "sh_degree": config.max_sh_degree,
             "position_lr": config.position_lr,
             "sh_rest_lr": config.sh_rest_lr,
@@ -503,6 +530,7 @@ pub fn eval(args: EvalArgs) -> Result<()> {
             eps2d: 0.3,
             mode: model.render_mode(),
             background: [0.0; 3],
+            appearance: model.appearance,
         };
         for (i, v) in views.iter().enumerate() {
             let (_, r) = omniscan_splat::raster::render(&g, &v.camera, &settings);
@@ -558,6 +586,30 @@ pub fn eval(args: EvalArgs) -> Result<()> {
     Ok(())
 }
 
+/// Whether a checkpoint's model can go on as asked: its appearance and
+/// footprint filter are part of the model, so a resumed run keeps them.
+fn resumable_as(
+    kept: &omniscan_splat::Splats,
+    appearance: Appearance,
+    antialiased: bool,
+) -> Result<()> {
+    let describe = |appearance: Appearance, antialiased: bool| {
+        let name = match appearance {
+            Appearance::ViewDirection => "--appearance view-direction",
+            Appearance::FixedRig => "--appearance fixed-rig",
+        };
+        format!("{name}{}", if antialiased { " --antialiased" } else { "" })
+    };
+    if kept.appearance != appearance || kept.antialiased != antialiased {
+        bail!(
+            "the checkpoint was trained with {}, and this run asks for {}",
+            describe(kept.appearance, kept.antialiased),
+            describe(appearance, antialiased)
+        );
+    }
+    Ok(())
+}
+
 /// The demo's training step: the merged model on both arms' views (right
 /// frames brought into the left frame by `right_to_left`), every 8th view
 /// held out. Returns the evaluation report.
@@ -570,7 +622,11 @@ pub fn train_merged(
 ) -> Result<serde_json::Value> {
     let all = views_from_capture(capture, ViewSet::Merged { right_to_left }, downscale)?;
     let (train_views, test_views) = split_held_out(all, 8);
-    let init = initial_splats(&train_views, 4000, 3, 0)?;
+    // A robot's capture: the camera and lights stay, the object turns.
+    let init = omniscan_splat::Splats {
+        appearance: Appearance::FixedRig,
+        ..initial_splats(&train_views, 4000, 3, 0)?
+    };
     let config = TrainConfig {
         sh_interval: steps / 4,
         ..TrainConfig::with_steps(steps)
@@ -589,4 +645,28 @@ pub fn train_merged(
     Ok(
         json!({ "model": out, "splats": model.len(), "steps": steps, "test": omniscan_splat::train::evaluate(&model, &test_views, None)? }),
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_checkpoint_resumes_only_under_its_own_appearance_and_filter() {
+        let kept = omniscan_splat::Splats {
+            appearance: Appearance::FixedRig,
+            ..Default::default()
+        };
+        assert!(resumable_as(&kept, Appearance::FixedRig, false).is_ok());
+        let err = resumable_as(&kept, Appearance::ViewDirection, false).unwrap_err();
+        assert!(
+            err.to_string().contains("trained with --appearance fixed-rig, and this run asks for --appearance view-direction"),
+            "{err}"
+        );
+        let err = resumable_as(&kept, Appearance::FixedRig, true).unwrap_err();
+        assert!(
+            err.to_string().ends_with("fixed-rig --antialiased"),
+            "{err}"
+        );
+    }
 }

@@ -11,6 +11,10 @@
 //! 4. `train --arm both --right-to-left` that transform, initialised from
 //!    both arms' models: the merged twin.
 //!
+//! Every training uses the fixed-rig appearance (SH by the splats' normals
+//! in the camera's frame): the two arms' views of one side, lit by the same
+//! fixed lights from different turns, disagree by viewing direction.
+//!
 //! Every stage writes its output atomically and a record of the command it
 //! ran (`OUTPUT.record.json`); `summary.json` gathers their reports. A
 //! second run reuses each stage whose record names the same command and
@@ -200,6 +204,10 @@ pub fn build_twin(args: &TwinArgs) -> Result<Value> {
             &backend,
             "--checkpoint-every",
             &every,
+            // Spelt out, so that a directory made before the setting
+            // existed (3DGS's view direction) is remade, not reused.
+            "--appearance",
+            "fixed-rig",
         ]));
         command.extend_from_slice(extra);
         let mut checkpoint = out.as_os_str().to_owned();

@@ -497,8 +497,14 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
         assert_refused(&train_more(flags), message);
     }
     // Starting from a point cloud: the first model's splat centres; with
-    // AbsGS's statistic, whose threshold the report gives.
-    let out = train_more(&["--init", model.to_str().unwrap(), "--absgrad"]);
+    // AbsGS's statistic, whose threshold the report gives, and 3DGS's SH.
+    let out = train_more(&[
+        "--init",
+        model.to_str().unwrap(),
+        "--absgrad",
+        "--appearance",
+        "view-direction",
+    ]);
     assert!(
         out.status.success(),
         "{}",
@@ -512,6 +518,9 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
     let settings = &from_points["settings"];
     assert_eq!(settings["absolute_gradients"], true, "{from_points}");
     assert!((settings["grad_threshold"].as_f64().unwrap() - 8e-4).abs() < 1e-9);
+    assert_eq!(settings["appearance"], "view-direction", "{from_points}");
+    let header = std::fs::read(&model).unwrap();
+    assert!(!String::from_utf8_lossy(&header[..400.min(header.len())]).contains("SplatAppearance"));
     // MCMC densification (one refinement in 200 steps, at step 100: 1000
     // splats would grow to 1050, the cap stops them at 1030), the 3DGS split
     // (views 0, 8, 16 held out) and an antialiased model.
@@ -545,11 +554,14 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
     let mcmc: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(mcmc["test_views"], 3, "{mcmc}");
     assert_eq!(mcmc["splats"], 1030, "{mcmc}");
-    // An antialiased model says so in its file, for viewers and `eval`.
+    // An antialiased model says so in its file, for viewers and `eval`; so
+    // does a model of a robot's capture, whose SH follow the splats' normals
+    // in the camera's frame (the default for a capture).
     let header = std::fs::read(&model).unwrap();
-    assert!(
-        String::from_utf8_lossy(&header[..400.min(header.len())]).contains("SplatRenderMode: mip")
-    );
+    let header = String::from_utf8_lossy(&header[..400.min(header.len())]).to_string();
+    assert!(header.contains("SplatRenderMode: mip"), "{header}");
+    assert!(header.contains("SplatAppearance: fixed-rig"), "{header}");
+    assert_eq!(mcmc["settings"]["appearance"], "fixed-rig", "{mcmc}");
     // Re-create the long model for the evaluation below.
     let long = run("300");
     assert!(metric(&long, "psnr_masked") > 22.0);

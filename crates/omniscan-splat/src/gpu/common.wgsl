@@ -9,7 +9,7 @@ struct Camera {
     intrinsics: vec4<f32>,  // fx, fy, cx, cy
     limits: vec4<f32>,      // x/z clamp (negative side, positive side), y/z clamp
     size: vec4<f32>,        // width, height, near, far
-    footprint: vec4<f32>,   // eps2d, antialiased (0/1)
+    footprint: vec4<f32>,   // eps2d, antialiased (0/1), SH by the normal in the camera's frame (0/1)
     background: vec4<f32>,
     counts: vec4<u32>,      // gaussians, SH coefficients used per channel, plain RGB (0/1), tiles in x
     counts2: vec4<u32>,     // tiles in y, colour coefficients stored per Gaussian
@@ -57,6 +57,19 @@ fn rotation_of(quaternion: vec4<f32>) -> mat3x3<f32> {
         vec3<f32>(2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x)),
         vec3<f32>(2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)),
     );
+}
+
+// The shortest of the axes with scales `s`, ties to the lower (as the CPU
+// reference's `rig_direction` picks it).
+fn shortest_axis(s: vec3<f32>) -> u32 {
+    var axis = 0u;
+    if (s.y < s.x) {
+        axis = 1u;
+    }
+    if (s.z < select(s.x, s.y, axis == 1u)) {
+        axis = 2u;
+    }
+    return axis;
 }
 
 // Real SH constants up to degree 3 (the CPU reference's `sh.rs`).

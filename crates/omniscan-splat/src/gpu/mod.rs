@@ -626,7 +626,11 @@ impl GpuRenderer {
                 } else {
                     0.0
                 },
-                0.0,
+                if settings.appearance == crate::raster::Appearance::FixedRig {
+                    1.0
+                } else {
+                    0.0
+                },
                 0.0,
             ],
             background,

@@ -108,6 +108,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     var colour: vec3<f32>;
     if (cam.counts.z == 1u) {
         colour = vec3<f32>(coeffs[3u * g], coeffs[3u * g + 1u], coeffs[3u * g + 2u]);
+    } else if (cam.footprint.z > 0.5) {
+        // The shortest axis in the camera's frame, facing the camera.
+        var columns = r;
+        let u = rot * columns[shortest_axis(s)];
+        colour = sh_colour(g, select(u, -u, u.z > 0.0));
     } else {
         let d = m - cam.campos.xyz;
         colour = sh_colour(g, d / sqrt(dot(d, d)));

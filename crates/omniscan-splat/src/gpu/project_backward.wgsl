@@ -83,6 +83,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
 
     // Colour: through the clamp to RGB or SH, and the SH view direction.
     var d_mean = vec3<f32>(0.0);
+    // Under the fixed-rig appearance, the colour's gradient into the column
+    // `rig_axis` of the splat's rotation.
+    let rig = cam.footprint.z > 0.5;
+    var rig_axis = 0u;
+    var d_rig = vec3<f32>(0.0);
     if (cam.counts.z == 1u) {
         d_coeffs[3u * g] = d_cv.x;
         d_coeffs[3u * g + 1u] = d_cv.y;
@@ -90,7 +95,19 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     } else {
         let dvec = m - cam.campos.xyz;
         let len = sqrt(dot(dvec, dvec));
-        let dir = dvec / len;
+        var dir = dvec / len;
+        var rig_sign = 1.0;
+        if (rig) {
+            var columns = rotation_of(vec4<f32>(quats[4u * g], quats[4u * g + 1u], quats[4u * g + 2u], quats[4u * g + 3u]));
+            rig_axis = shortest_axis(vec3<f32>(scales[3u * g], scales[3u * g + 1u], scales[3u * g + 2u]));
+            let n = columns[rig_axis];
+            var u = vec3<f32>(0.0);
+            for (var a = 0u; a < 3u; a++) {
+                u[a] = R[a][0] * n.x + R[a][1] * n.y + R[a][2] * n.z;
+            }
+            rig_sign = select(1.0, -1.0, u.z > 0.0);
+            dir = u * rig_sign;
+        }
         let dx = dir.x;
         let dy = dir.y;
         let dz = dir.z;
@@ -136,7 +153,13 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
             d_coeffs[base + 3u * i + 2u] = b[i] * d_raw.z;
             d_dir += db[i] * dot(c, d_raw);
         }
-        d_mean += (d_dir - dir * dot(d_dir, dir)) / len;
+        if (rig) {
+            for (var c = 0u; c < 3u; c++) {
+                d_rig[c] = rig_sign * (R[0][c] * d_dir.x + R[1][c] * d_dir.y + R[2][c] * d_dir.z);
+            }
+        } else {
+            d_mean += (d_dir - dir * dot(d_dir, dir)) / len;
+        }
     }
 
     // The forward quantities this Gaussian needs.
@@ -311,6 +334,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
             }
             d_r[a][c] = d_m * s[c];
             d_s[c] += d_m * r[a][c];
+        }
+    }
+    if (rig) {
+        for (var a = 0u; a < 3u; a++) {
+            d_r[a][rig_axis] += d_rig[a];
         }
     }
     d_scales[3u * g] = d_s.x;

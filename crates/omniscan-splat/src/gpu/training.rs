@@ -121,6 +121,7 @@ pub struct DeviceState {
     stride: u32,
     sh_degree: usize,
     antialiased: bool,
+    appearance: crate::raster::Appearance,
     /// Means, log-scales, quaternions, opacity logits, SH coefficients.
     values: [wgpu::Buffer; 5],
     first: [wgpu::Buffer; 5],
@@ -201,6 +202,7 @@ impl GpuRenderer {
             stride,
             sh_degree: s.sh_degree,
             antialiased: s.antialiased,
+            appearance: s.appearance,
             values,
             first,
             second,
@@ -262,6 +264,7 @@ impl GpuRenderer {
             sh_degree: device.sh_degree,
             sh: triples(parts[4]),
             antialiased: device.antialiased,
+            appearance: device.appearance,
         };
         let moments = [0, 1, 2, 3, 4].map(|g| (floats(parts[5 + 2 * g]), floats(parts[6 + 2 * g])));
         Ok(HostState {
