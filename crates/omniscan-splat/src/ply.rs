@@ -6,7 +6,8 @@
 //! models, and `comment SplatAppearance: fixed-rig` models whose SH are a
 //! function of the splat's normal in the camera's frame
 //! ([`crate::raster::Appearance::FixedRig`]; other readers take them for
-//! ordinary models, right in their base colour). Also the headerless `.splat` format of web viewers.
+//! ordinary models, right in their base colour). Also the headerless
+//! `.splat` format of web viewers.
 
 use std::path::Path;
 

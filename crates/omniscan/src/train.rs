@@ -114,7 +114,7 @@ pub struct TrainArgs {
     /// Train an antialiased model (Mip-Splatting's 2D filter with opacity compensation, gsplat's `antialiased` mode): renders stay free of aliasing when viewed smaller than trained.
     #[arg(long)]
     pub antialiased: bool,
-    /// What view-dependent colour depends on. In the paper's scan the camera and the lights stay put while the gripper turns the object, so a surface's shading follows its normal in the camera's frame (fixed-rig); 3DGS's viewing direction cannot tell apart the two arms' views of one side under differently turned light, and a merged model blurs between them. fixed-rig models are marked in the PLY header; other viewers show them right in their base colour.
+    /// What view-dependent colour depends on. In the paper's scan the camera and the lights stay put while the gripper turns the object, so a surface's shading follows its normal in the camera's frame (fixed-rig); 3DGS's viewing direction cannot tell apart the two arms' views of one side under differently turned light, and a merged model blurs between them. fixed-rig models are marked in the PLY header; other viewers read them as ordinary models, right in their base colour.
     #[arg(long, value_enum, default_value = "auto")]
     pub appearance: AppearanceArg,
     /// Densify by the per-pixel screen-space gradients summed in absolute value (AbsGS, gsplat's `absgrad`), so large splats over fine texture split; the default threshold becomes 0.0008. Adaptive densification only.
