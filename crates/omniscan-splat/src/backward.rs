@@ -324,6 +324,7 @@ fn project_backward<F: Real>(
             let mut d_mean = [F::zero(); 3];
             let mut d_rig_axis = [F::zero(); 3];
             let mut rig_axis = None;
+            let r = quat_to_rotmat(g.quats[i]);
             match &g.colors {
                 Colors::Rgb(_) => d_colors_out[0] = colors_view[i],
                 Colors::Sh { degree, coeffs } => {
@@ -332,9 +333,9 @@ fn project_backward<F: Real>(
                     let len = (dvec[0] * dvec[0] + dvec[1] * dvec[1] + dvec[2] * dvec[2]).sqrt();
                     let rig = match settings.appearance {
                         Appearance::ViewDirection => None,
-                        Appearance::FixedRig => Some(rig_direction(&rot, g.quats[i], g.scales[i])),
+                        Appearance::FixedRig => Some(rig_direction(&rot, &r, g.scales[i])),
                     };
-                    let dir = rig.map_or_else(|| dvec.map(|t| t / len), |r| r.0);
+                    let dir = rig.map_or_else(|| dvec.map(|t| t / len), |rig| rig.0);
                     let raw = sh::evaluate(*degree, dir, &coeffs[i * k..(i + 1) * k]);
                     let d_raw: [F; 3] = [0, 1, 2].map(|ch| {
                         if raw[ch] + F::c(0.5) < F::zero() {
@@ -378,7 +379,7 @@ fn project_backward<F: Real>(
                 }
             }
             // Recompute the forward quantities this Gaussian needs.
-            let cov_w = covariance(g.quats[i], g.scales[i]);
+            let cov_w = covariance(&r, g.scales[i]);
             let cov_c = mat3_mul(&mat3_mul(&rot, &cov_w), &mat3_t(&rot));
             let (rx, ry) = (x / z, y / z);
             let clamped_x = rx < -lim_x_neg || rx > lim_x_pos;
@@ -494,7 +495,6 @@ fn project_backward<F: Real>(
             *d_mean_out = d_mean;
             let d_cov_w = mat3_mul(&mat3_mul(&mat3_t(&rot), &d_cov_c), &rot);
             // Σ = M Mᵀ, M = R S.
-            let r = quat_to_rotmat(g.quats[i]);
             let s = g.scales[i];
             let mut mm = r;
             for row in &mut mm {

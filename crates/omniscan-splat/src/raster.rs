@@ -283,10 +283,9 @@ fn transpose3<F: Real>(a: &[[F; 3]; 3]) -> [[F; 3]; 3] {
     out
 }
 
-/// World-space covariance R·S·Sᵀ·Rᵀ.
-pub fn covariance<F: Real>(quat: [F; 4], scale: [F; 3]) -> [[F; 3]; 3] {
-    let r = quat_to_rotmat(quat);
-    let mut m = r;
+/// World-space covariance R·S·Sᵀ·Rᵀ of a splat with rotation matrix `r`.
+pub fn covariance<F: Real>(r: &[[F; 3]; 3], scale: [F; 3]) -> [[F; 3]; 3] {
+    let mut m = *r;
     for row in &mut m {
         for (j, v) in row.iter_mut().enumerate() {
             *v = *v * scale[j];
@@ -297,15 +296,14 @@ pub fn covariance<F: Real>(quat: [F; 4], scale: [F; 3]) -> [[F; 3]; 3] {
 
 /// The direction a splat's SH are evaluated at under
 /// [`Appearance::FixedRig`], and how it was made: the column `axis` of the
-/// splat's rotation (its shortest axis) turned into the camera's frame by
-/// `rot` and multiplied by `sign` (±1) so that it faces the camera (negative
-/// z). A unit vector, since both rotations are.
+/// splat's rotation matrix `r` (its shortest axis) turned into the camera's
+/// frame by `rot` and multiplied by `sign` (±1) so that it faces the camera
+/// (negative z). A unit vector, since both rotations are.
 pub fn rig_direction<F: Real>(
     rot: &[[F; 3]; 3],
-    quat: [F; 4],
+    r: &[[F; 3]; 3],
     scale: [F; 3],
 ) -> ([F; 3], usize, F) {
-    let r = quat_to_rotmat(quat);
     // Ties go to the lower axis, on both backends.
     let axis = (1..3).fold(0, |k, j| if scale[j] < scale[k] { j } else { k });
     let u = [0, 1, 2].map(|a| (0..3).map(|b| rot[a][b] * r[b][axis]).sum::<F>());
@@ -339,7 +337,8 @@ pub fn project<F: Real>(
             let pc = [0, 1, 2]
                 .map(|r| rot[r][0] * m[0] + rot[r][1] * m[1] + rot[r][2] * m[2] + trans[r]);
             let (x, y, z) = (pc[0], pc[1], pc[2]);
-            let cov_w = covariance(g.quats[i], g.scales[i]);
+            let rotation = quat_to_rotmat(g.quats[i]);
+            let cov_w = covariance(&rotation, g.scales[i]);
             let cov_c = matmul3(&matmul3(&rot, &cov_w), &transpose3(&rot));
             let tx = z * (x / z).max(-lim_x_neg).min(lim_x_pos);
             let ty = z * (y / z).max(-lim_y_neg).min(lim_y_pos);
@@ -396,7 +395,7 @@ pub fn project<F: Real>(
                     let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
                     let dir = match settings.appearance {
                         Appearance::ViewDirection => d.map(|v| v / len),
-                        Appearance::FixedRig => rig_direction(&rot, g.quats[i], g.scales[i]).0,
+                        Appearance::FixedRig => rig_direction(&rot, &rotation, g.scales[i]).0,
                     };
                     let raw = sh::evaluate(*degree, dir, &coeffs[i * k..(i + 1) * k]);
                     raw.map(|v| (v + F::c(0.5)).max(F::zero()))

@@ -81,6 +81,20 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         d_opacities[g] = d_ov;
     }
 
+    // The splat's rotation (rows of R(q̂)) and scales, for the colour and the covariance.
+    var q = vec4<f32>(quats[4u * g], quats[4u * g + 1u], quats[4u * g + 2u], quats[4u * g + 3u]);
+    let norm = sqrt(dot(q, q));
+    q = q / norm;
+    let qw = q.x;
+    let qx = q.y;
+    let qy = q.z;
+    let qz = q.w;
+    var r: array<array<f32, 3>, 3>;
+    r[0] = array<f32, 3>(1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy - qw * qz), 2.0 * (qx * qz + qw * qy));
+    r[1] = array<f32, 3>(2.0 * (qx * qy + qw * qz), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz - qw * qx));
+    r[2] = array<f32, 3>(2.0 * (qx * qz - qw * qy), 2.0 * (qy * qz + qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy));
+    let s = array<f32, 3>(scales[3u * g], scales[3u * g + 1u], scales[3u * g + 2u]);
+
     // Colour: through the clamp to RGB or SH, and the SH view direction.
     var d_mean = vec3<f32>(0.0);
     // Under the fixed-rig appearance, the colour's gradient into the column
@@ -98,12 +112,12 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         var dir = dvec / len;
         var rig_sign = 1.0;
         if (rig) {
-            var columns = rotation_of(vec4<f32>(quats[4u * g], quats[4u * g + 1u], quats[4u * g + 2u], quats[4u * g + 3u]));
-            rig_axis = shortest_axis(vec3<f32>(scales[3u * g], scales[3u * g + 1u], scales[3u * g + 2u]));
-            let n = columns[rig_axis];
+            rig_axis = shortest_axis(vec3<f32>(s[0], s[1], s[2]));
             var u = vec3<f32>(0.0);
             for (var a = 0u; a < 3u; a++) {
-                u[a] = R[a][0] * n.x + R[a][1] * n.y + R[a][2] * n.z;
+                for (var b = 0u; b < 3u; b++) {
+                    u[a] += R[a][b] * r[b][rig_axis];
+                }
             }
             rig_sign = select(1.0, -1.0, u.z > 0.0);
             dir = u * rig_sign;
@@ -163,18 +177,6 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     }
 
     // The forward quantities this Gaussian needs.
-    var q = vec4<f32>(quats[4u * g], quats[4u * g + 1u], quats[4u * g + 2u], quats[4u * g + 3u]);
-    let norm = sqrt(dot(q, q));
-    q = q / norm;
-    let qw = q.x;
-    let qx = q.y;
-    let qy = q.z;
-    let qz = q.w;
-    var r: array<array<f32, 3>, 3>;
-    r[0] = array<f32, 3>(1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy - qw * qz), 2.0 * (qx * qz + qw * qy));
-    r[1] = array<f32, 3>(2.0 * (qx * qy + qw * qz), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz - qw * qx));
-    r[2] = array<f32, 3>(2.0 * (qx * qz - qw * qy), 2.0 * (qy * qz + qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy));
-    let s = array<f32, 3>(scales[3u * g], scales[3u * g + 1u], scales[3u * g + 2u]);
     var mm: array<array<f32, 3>, 3>;
     for (var a = 0u; a < 3u; a++) {
         for (var c = 0u; c < 3u; c++) {
