@@ -18,7 +18,7 @@ use omniscan_register::PointCloud;
 use omniscan_register::preprocess::voxel_downsample;
 use omniscan_splat::Splats;
 use omniscan_splat::backend::Renderer;
-use omniscan_splat::raster::{Camera, Settings, render};
+use omniscan_splat::raster::{Camera, render};
 
 /// One viewpoint: where the camera is (camera-to-world, OpenCV axes) and its pinhole.
 #[derive(Debug, Clone)]
@@ -159,7 +159,7 @@ impl ViewRender {
 /// Renders `model` from every view on the CPU.
 pub fn render_views(model: &Splats, views: &[View]) -> Vec<ViewRender> {
     let gaussians = model.gaussians::<f32>();
-    let settings = render_settings(model);
+    let settings = model.render_settings([0.0f32; 3]);
     views
         .par_iter()
         .map(|view| view_render(render(&gaussians, &view.camera(), &settings).1))
@@ -177,7 +177,7 @@ pub fn render_views_on(
         return Ok(render_views(model, views));
     }
     let gaussians = model.gaussians::<f32>();
-    let settings = render_settings(model);
+    let settings = model.render_settings([0.0f32; 3]);
     views
         .iter()
         .map(|view| {
@@ -188,14 +188,6 @@ pub fn render_views_on(
             )?))
         })
         .collect()
-}
-
-fn render_settings(model: &Splats) -> Settings<f32> {
-    Settings {
-        mode: model.render_mode(),
-        appearance: model.appearance,
-        ..Settings::default()
-    }
 }
 
 /// A render with its surface depth.

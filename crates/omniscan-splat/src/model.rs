@@ -79,12 +79,18 @@ impl Splats {
         Ok(())
     }
 
-    /// The footprint filter the model was trained with.
-    pub fn render_mode(&self) -> crate::raster::Mode {
-        if self.antialiased {
-            crate::raster::Mode::Antialiased
-        } else {
-            crate::raster::Mode::Classic
+    /// The settings the model renders with: the footprint filter and the
+    /// appearance it was trained with, over `background`.
+    pub fn render_settings<F: Real>(&self, background: [F; 3]) -> crate::raster::Settings<F> {
+        crate::raster::Settings {
+            mode: if self.antialiased {
+                crate::raster::Mode::Antialiased
+            } else {
+                crate::raster::Mode::Classic
+            },
+            appearance: self.appearance,
+            background,
+            ..crate::raster::Settings::default()
         }
     }
 

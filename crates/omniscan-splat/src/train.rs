@@ -30,7 +30,7 @@ use crate::backend::Renderer;
 use crate::backward::backward_binned;
 use crate::gpu::training::{HostState, LossTarget, McmcStep, StepRates};
 use crate::metrics::{ImageView, psnr, weighted_ssim_and_gradient};
-use crate::raster::{Camera, Settings, bin_tiles, project, rasterize, rasterize_binned};
+use crate::raster::{Camera, bin_tiles, project, rasterize, rasterize_binned};
 use crate::sh::{C0, coefficients};
 use crate::{SplatError, Splats};
 
@@ -617,12 +617,7 @@ pub fn train_resumable(
             rng.random::<f32>(),
             rng.random::<f32>(),
         ];
-        let settings = Settings {
-            eps2d: 0.3,
-            mode: s.render_mode(),
-            background,
-            appearance: s.appearance,
-        };
+        let settings = s.render_settings(background);
         let t = step as i32;
         let progress_fraction = step as f32 / config.steps as f32;
         let means_lr = config.position_lr * extent * 0.01f32.powf(progress_fraction);
@@ -1143,12 +1138,7 @@ pub fn evaluate(
 ) -> Result<serde_json::Value, SplatError> {
     use crate::metrics::ssim;
     let g = model.gaussians::<f32>();
-    let settings = Settings {
-        eps2d: 0.3,
-        mode: model.render_mode(),
-        background: [0.0; 3],
-        appearance: model.appearance,
-    };
+    let settings = model.render_settings([0.0; 3]);
     let (mut p_all, mut s_all, mut p_mask, mut s_mask) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let (mut l_all, mut l_mask) = (Vec::new(), Vec::new());
@@ -1375,6 +1365,7 @@ pub fn views_from_cameras_json(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::raster::Settings;
 
     #[test]
     fn every_eighth_view_is_held_out() {

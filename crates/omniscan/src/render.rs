@@ -11,7 +11,7 @@ use omniscan_core::image_io::{RgbImage, write_rgb};
 use omniscan_core::poses::{ViewSet, camera_views};
 use omniscan_splat::backend::{Backend, Renderer};
 use omniscan_splat::ply::read_splats;
-use omniscan_splat::raster::{Camera, Settings};
+use omniscan_splat::raster::Camera;
 
 #[derive(clap::Args)]
 pub struct RenderArgs {
@@ -106,12 +106,8 @@ pub fn run(args: RenderArgs) -> Result<()> {
             .map(|(i, c)| (format!("orbit_{i:03}"), c))
             .collect(),
     };
-    let settings = Settings {
-        eps2d: 0.3,
-        mode: model.render_mode(),
-        background: [args.background[0], args.background[1], args.background[2]],
-        appearance: model.appearance,
-    };
+    let settings =
+        model.render_settings([args.background[0], args.background[1], args.background[2]]);
     let gaussians = model.gaussians::<f32>();
     let renderer = Renderer::new(args.backend)?;
     tracing::info!("rendering on {}", renderer.describe());

@@ -526,12 +526,7 @@ pub fn eval(args: EvalArgs) -> Result<()> {
     .unzip();
     if let Some(dir) = &args.renders {
         let g = model.gaussians::<f32>();
-        let settings = omniscan_splat::raster::Settings {
-            eps2d: 0.3,
-            mode: model.render_mode(),
-            background: [0.0; 3],
-            appearance: model.appearance,
-        };
+        let settings = model.render_settings([0.0; 3]);
         for (i, v) in views.iter().enumerate() {
             let (_, r) = omniscan_splat::raster::render(&g, &v.camera, &settings);
             let (w, h) = (v.camera.width as usize, v.camera.height as usize);
