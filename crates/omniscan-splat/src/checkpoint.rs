@@ -7,7 +7,7 @@
 //! `adam.<g>.v` for the five parameter groups (float32); `grad2d_sum`
 //! (float32), `grad2d_count` (uint32), `order` (uint32). Metadata: `format`
 //! = `omniscan-train-state-v1`, `step`, `extent`, `rng_word_pos`,
-//! `sh_degree`, `antialiased`, `fixed_rig`, `fingerprint`.
+//! `sh_degree`, `antialiased`, `appearance`, `fingerprint`.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -110,10 +110,7 @@ pub fn save(state: &TrainState, path: &Path) -> Result<(), SplatError> {
         ("rng_word_pos".to_string(), state.rng_word_pos.to_string()),
         ("sh_degree".to_string(), s.sh_degree.to_string()),
         ("antialiased".to_string(), s.antialiased.to_string()),
-        (
-            "fixed_rig".to_string(),
-            (s.appearance == crate::raster::Appearance::FixedRig).to_string(),
-        ),
+        ("appearance".to_string(), s.appearance.name().to_string()),
         ("fingerprint".to_string(), state.fingerprint.clone()),
     ]);
     let encoded = safetensors::serialize(views, Some(metadata))
@@ -200,9 +197,10 @@ pub fn load(path: &Path) -> Result<TrainState, SplatError> {
         sh: triples(floats("sh", 3)?),
         antialiased: meta("antialiased")? == "true",
         // Checkpoints from before the setting have none: view direction.
-        appearance: match info.get("fixed_rig").map(String::as_str) {
-            Some("true") => crate::raster::Appearance::FixedRig,
-            _ => crate::raster::Appearance::ViewDirection,
+        appearance: match info.get("appearance") {
+            None => crate::raster::Appearance::ViewDirection,
+            Some(name) => crate::raster::Appearance::from_name(name)
+                .ok_or_else(|| bad(format!("metadata `appearance` is `{name}`")))?,
         },
     };
     splats.validate().map_err(|e| bad(e.to_string()))?;

@@ -11,8 +11,9 @@
 
 use std::path::Path;
 
-/// The header comment of a [`crate::raster::Appearance::FixedRig`] model.
-const FIXED_RIG_COMMENT: &str = "SplatAppearance: fixed-rig";
+/// The header comment naming a model's [`crate::raster::Appearance`],
+/// written for the fixed-rig one only (other models keep 3DGS's header).
+const APPEARANCE_COMMENT: &str = "SplatAppearance:";
 
 use crate::sh::{C0, coefficients};
 use crate::{SplatError, Splats};
@@ -60,12 +61,12 @@ pub fn splats_from_ply(ply: &PlyFile) -> Result<Splats, String> {
         .comments
         .iter()
         .any(|c| c.trim().eq_ignore_ascii_case("SplatRenderMode: mip"));
-    if ply
-        .comments
-        .iter()
-        .any(|c| c.trim().eq_ignore_ascii_case(FIXED_RIG_COMMENT))
-    {
-        s.appearance = crate::raster::Appearance::FixedRig;
+    for comment in &ply.comments {
+        if let Some(name) = comment.trim().strip_prefix(APPEARANCE_COMMENT) {
+            s.appearance = crate::raster::Appearance::from_name(name.trim()).ok_or_else(|| {
+                format!("unknown splat appearance `{}` in the header", name.trim())
+            })?;
+        }
     }
     for i in 0..n {
         s.means.push([x[i], y[i], z[i]].map(|v| v as f32));
@@ -138,8 +139,8 @@ pub fn splats_to_ply(s: &Splats) -> PlyFile {
     }
     let mode = if s.antialiased { "mip" } else { "default" };
     let mut comments = vec![format!("SplatRenderMode: {mode}")];
-    if s.appearance == crate::raster::Appearance::FixedRig {
-        comments.push(FIXED_RIG_COMMENT.into());
+    if s.appearance != crate::raster::Appearance::ViewDirection {
+        comments.push(format!("{APPEARANCE_COMMENT} {}", s.appearance.name()));
     }
     comments.push("written by omniscan".into());
     PlyFile {

@@ -155,6 +155,23 @@ pub enum Appearance {
     FixedRig,
 }
 
+impl Appearance {
+    /// The name files, reports and the command line use.
+    pub fn name(self) -> &'static str {
+        match self {
+            Appearance::ViewDirection => "view-direction",
+            Appearance::FixedRig => "fixed-rig",
+        }
+    }
+
+    /// The appearance called `name` (see [`Appearance::name`]).
+    pub fn from_name(name: &str) -> Option<Appearance> {
+        [Appearance::ViewDirection, Appearance::FixedRig]
+            .into_iter()
+            .find(|a| a.name() == name)
+    }
+}
+
 /// Rendering settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Settings<F> {

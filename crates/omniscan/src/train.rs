@@ -412,10 +412,7 @@ pub fn train_capture(args: &TrainArgs) -> Result<serde_json::Value> {
             "absolute_gradients": config.absolute_gradients,
             "grad_threshold": config.grad_threshold,
             "antialiased": model.antialiased,
-            "appearance": match model.appearance {
-                Appearance::ViewDirection => "view-direction",
-                Appearance::FixedRig => "fixed-rig",
-            },
+            "appearance": model.appearance.name(),
             "sh_degree": config.max_sh_degree,
             "position_lr": config.position_lr,
             "sh_rest_lr": config.sh_rest_lr,
@@ -589,11 +586,11 @@ fn resumable_as(
     antialiased: bool,
 ) -> Result<()> {
     let describe = |appearance: Appearance, antialiased: bool| {
-        let name = match appearance {
-            Appearance::ViewDirection => "--appearance view-direction",
-            Appearance::FixedRig => "--appearance fixed-rig",
-        };
-        format!("{name}{}", if antialiased { " --antialiased" } else { "" })
+        format!(
+            "--appearance {}{}",
+            appearance.name(),
+            if antialiased { " --antialiased" } else { "" }
+        )
     };
     if kept.appearance != appearance || kept.antialiased != antialiased {
         bail!(
