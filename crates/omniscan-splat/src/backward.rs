@@ -565,18 +565,7 @@ fn project_backward<F: Real>(
 mod tests {
     use super::*;
     use crate::raster::{Colors, Mode, render};
-
-    /// A deterministic pseudo-random sequence in [0, 1).
-    struct Lcg(u64);
-    impl Lcg {
-        fn next(&mut self) -> f64 {
-            self.0 = self
-                .0
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (self.0 >> 11) as f64 / (1u64 << 53) as f64
-        }
-    }
+    use crate::test_support::Lcg;
 
     /// A scene with its camera, settings and the loss weights for colour and alpha.
     type Scene = (

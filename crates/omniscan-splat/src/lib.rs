@@ -21,12 +21,29 @@ pub mod lpips;
 pub mod mcmc;
 pub mod metrics;
 pub mod model;
+pub mod offset;
 pub mod orbit;
 pub mod ply;
 pub mod raster;
 pub mod sh;
 pub mod train;
 pub mod transform;
+
+/// Helpers the unit tests share.
+#[cfg(test)]
+pub(crate) mod test_support {
+    /// A deterministic pseudo-random sequence in [0, 1), for test scenes.
+    pub struct Lcg(pub u64);
+    impl Lcg {
+        pub fn next(&mut self) -> f64 {
+            self.0 = self
+                .0
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (self.0 >> 11) as f64 / (1u64 << 53) as f64
+        }
+    }
+}
 
 use std::path::{Path, PathBuf};
 

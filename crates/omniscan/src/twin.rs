@@ -4,10 +4,12 @@
 //! Four stages, each the command a user would run by hand:
 //! 1. `train --arm left` and 2. `train --arm right`: one model per arm, each
 //!    in its gripper's frame;
-//! 3. `align right.ply left.ply --handover CAPTURE`: the right model onto
-//!    the left from the robot's handover estimate T_lh⁻¹·T_rh, refined by
-//!    ICP and colored ICP, the better fitness winning (the paper's rule,
-//!    with near-ties to the lower RMSE);
+//! 3. `align right.ply left.ply --handover CAPTURE --photometric`: the right
+//!    model onto the left from the robot's handover estimate T_lh⁻¹·T_rh,
+//!    refined by ICP and colored ICP, the better fitness winning (the
+//!    paper's rule, with near-ties to the lower RMSE), then by rendering the
+//!    left model into the right arm's views (`omniscan_splat::offset`:
+//!    the points stop degrees short where the grippers hid the object);
 //! 4. `train --arm both --right-to-left` that transform, initialised from
 //!    both arms' models: the merged twin.
 //!
@@ -26,6 +28,8 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 use clap::Parser;
 use serde_json::{Value, json};
+
+use omniscan_core::geometry::pose_from_rows;
 
 use crate::registration::{AlignArgs, align_clouds};
 use crate::train::{TrainArgs, train_capture};
@@ -244,6 +248,9 @@ pub fn build_twin(args: &TwinArgs) -> Result<Value> {
         text(&left),
         "--handover".into(),
         capture_path.clone(),
+        "--photometric".into(),
+        "--downscale".into(),
+        downscale.clone(),
     ]);
     command.extend(["--out".into(), text(&transform)]);
     let align_stage = stage(
@@ -300,6 +307,11 @@ pub fn build_twin(args: &TwinArgs) -> Result<Value> {
             "handover_estimate": error(&estimate),
             "refined": error(&refined),
         });
+        // The point registration's own transform, before the images refined it.
+        let from = &summary["stages"]["align"]["report"]["photometric"]["from"];
+        if let Ok(rows) = serde_json::from_value::<[[f64; 4]; 4]>(from.clone()) {
+            summary["alignment_error"]["points_only"] = error(&pose_from_rows(&rows)?);
+        }
     }
     omniscan_core::io::write_json_atomic(&path("summary.json"), &summary)?;
     Ok(summary)

@@ -867,6 +867,37 @@ fn the_papers_merge_runs_from_the_command_line() {
         from_capture["fitness"].as_f64().unwrap() > 0.3,
         "{from_capture}"
     );
+    // `--photometric` refines that transform by rendering the left model into
+    // the right arm's views; it needs the capture and a splat model to render.
+    let photometric = align(&["--handover", "cap", "--photometric"], "photo.json");
+    let found = &photometric["photometric"];
+    assert!(found["loss_before"].as_f64().unwrap() > 0.0, "{found}");
+    assert_eq!(found["from"], from_capture["transform"], "{found}");
+    if found["accepted"].as_bool().unwrap() {
+        assert!(found["loss_after"].as_f64() < found["loss_before"].as_f64());
+    } else {
+        assert_eq!(photometric["transform"], from_capture["transform"]);
+    }
+    let refuse = |extra: &[&str], target: &str, wanted: &str| {
+        let mut a = vec!["align", "right.ply", target, "--out", "no.json"];
+        a.extend_from_slice(extra);
+        let out = Command::new(env!("CARGO_BIN_EXE_omniscan"))
+            .current_dir(tmp.path())
+            .args(&a)
+            .output()
+            .unwrap();
+        assert!(!out.status.success());
+        let text = String::from_utf8_lossy(&out.stderr);
+        assert!(text.contains(wanted), "{text}");
+    };
+    refuse(&["--photometric"], "left.ply", "--handover");
+    let cloud = omniscan_register::cloud::read_cloud(&tmp.path().join("left.ply")).unwrap();
+    omniscan_register::cloud::write_ply(&tmp.path().join("points.ply"), &cloud).unwrap();
+    refuse(
+        &["--handover", "cap", "--photometric"],
+        "points.ply",
+        "splat model",
+    );
     // The merged model starts from both arms' models: the right one's points
     // carried into the left frame by the merge transform (one step barely moves them).
     let centres = |p: &str| omniscan_register::cloud::read_cloud(Path::new(p)).unwrap();
@@ -1078,6 +1109,11 @@ fn twin_builds_the_merged_model_in_stages_and_resumes_an_interrupted_run() {
         "{error}"
     );
     assert!(error["refined"]["deg"].as_f64().is_some(), "{error}");
+    // The images refined the points' transform, on the right arm's training views only.
+    assert!(error["points_only"]["deg"].as_f64().is_some(), "{error}");
+    let photometric = &align["photometric"];
+    // 24 merged views hold out 7, 15 and 23: two of them the right arm's.
+    assert_eq!(photometric["views"].as_u64().unwrap(), 10, "{photometric}");
     // A third run has nothing left to do.
     let again = omniscan_json(&args);
     for stage in ["left", "right", "align", "twin"] {
