@@ -93,9 +93,11 @@ pub struct OffsetRefinement {
     /// the refinement did not lower the loss.
     #[serde(skip)]
     pub offset: Pose,
+    /// The offset's angle (degrees) and distance (the model's units, metres for captures).
     pub offset_deg: f64,
     pub offset_m: f64,
-    /// Mean L1 colour loss over the views at the start and at the offset found.
+    /// Mean loss (colour and silhouette) over the views at the start and at
+    /// the offset found.
     pub loss_before: f64,
     pub loss_after: f64,
     /// Whether the offset found lowered the loss (otherwise the identity is kept).
@@ -111,7 +113,6 @@ pub struct OffsetRefinement {
 /// finite-difference check sees a smooth function). The colour target is the
 /// image on its object mask and black elsewhere, the model rendered over
 /// black; `silhouette` weighs the alpha term (module doc).
-#[allow(clippy::too_many_arguments)]
 fn loss_and_gradient<F: Real>(
     g: &Gaussians<F>,
     camera: &Camera<F>,
@@ -134,10 +135,7 @@ fn loss_and_gradient<F: Real>(
             .collect(),
     };
     let count = counted.iter().filter(|&&c| c).count();
-    if count == 0 {
-        return (F::zero(), [F::zero(); 6], counted);
-    }
-    let norm = F::c(3.0 * count as f64);
+    let norm = F::c(3.0 * count.max(1) as f64);
     let mut loss = F::zero();
     let mut d_rgb = vec![[F::zero(); 3]; counted.len()];
     for (i, _) in counted.iter().enumerate().filter(|(_, c)| **c) {
@@ -167,7 +165,6 @@ fn loss_and_gradient<F: Real>(
     }
     let grads = backward(g, camera, settings, &p, &d_rgb, &d_alpha);
     let mut out = [F::zero(); 6];
-    let half = F::c(0.5);
     for ((mean, dm), (q, dq)) in g
         .means
         .iter()
