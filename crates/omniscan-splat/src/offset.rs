@@ -113,7 +113,9 @@ pub struct OffsetRefinement {
 /// reaches one half, or those of `fixed` when given (so that a
 /// finite-difference check sees a smooth function). The colour target is the
 /// image on its object mask and black elsewhere, the model rendered over
-/// black; `silhouette` weighs the alpha term (module doc).
+/// black; `silhouette` weighs the alpha term (module doc). Without
+/// `with_gradient` the backward pass is skipped and the gradient is zero.
+#[allow(clippy::too_many_arguments)]
 fn loss_and_gradient<F: Real>(
     g: &Gaussians<F>,
     camera: &Camera<F>,
@@ -122,6 +124,7 @@ fn loss_and_gradient<F: Real>(
     centre: [F; 3],
     fixed: Option<&[bool]>,
     silhouette: f64,
+    with_gradient: bool,
 ) -> (F, [F; 6], Vec<bool>) {
     let p = project(g, camera, settings);
     let r = rasterize(&p, camera.width, camera.height, settings.background);
@@ -164,8 +167,11 @@ fn loss_and_gradient<F: Real>(
             }
         }
     }
-    let grads = backward(g, camera, settings, &p, &d_rgb, &d_alpha);
     let mut out = [F::zero(); 6];
+    if !with_gradient {
+        return (loss, out, counted);
+    }
+    let grads = backward(g, camera, settings, &p, &d_rgb, &d_alpha);
     for ((mean, dm), (q, dq)) in g
         .means
         .iter()
@@ -280,8 +286,16 @@ pub fn refine_offset(
             .iter()
             .map(|v| {
                 let camera = offset_camera::<f32>(&v.camera, offset);
-                let (l, _, c) =
-                    loss_and_gradient(&g, &camera, &settings, v, centre_f, None, config.silhouette);
+                let (l, _, c) = loss_and_gradient(
+                    &g,
+                    &camera,
+                    &settings,
+                    v,
+                    centre_f,
+                    None,
+                    config.silhouette,
+                    false,
+                );
                 (l as f64, c.iter().any(|&x| x))
             })
             .fold((0.0, 0usize), |(s, k), (l, any)| {
@@ -321,6 +335,7 @@ pub fn refine_offset(
                 centre_f,
                 None,
                 config.silhouette,
+                true,
             );
             for (to, from) in gradient.iter_mut().zip(d) {
                 *to += from as f64;
@@ -478,7 +493,7 @@ mod tests {
             let view = &views[1];
             let camera = offset_camera::<f64>(&view.camera, &moved);
             let (_, analytic, counted) =
-                loss_and_gradient(&g, &camera, &settings, view, centre, None, 1.0);
+                loss_and_gradient(&g, &camera, &settings, view, centre, None, 1.0, true);
             let h = 1e-6;
             for k in 0..6 {
                 let at = |e: f64| {
@@ -486,7 +501,17 @@ mod tests {
                     x[k] = e;
                     let d = moved * motion_about(&c, [x[0], x[1], x[2]], [x[3], x[4], x[5]]);
                     let camera = offset_camera::<f64>(&view.camera, &d);
-                    loss_and_gradient(&g, &camera, &settings, view, centre, Some(&counted), 1.0).0
+                    loss_and_gradient(
+                        &g,
+                        &camera,
+                        &settings,
+                        view,
+                        centre,
+                        Some(&counted),
+                        1.0,
+                        false,
+                    )
+                    .0
                 };
                 let numeric = (at(h) - at(-h)) / (2.0 * h);
                 let scale = analytic.iter().fold(0.0f64, |m, x| m.max(x.abs()));
