@@ -618,6 +618,21 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
         .sum::<f64>()
         / 3.0;
     assert!((mean - held_out["psnr_masked"].as_f64().unwrap()).abs() < 1e-9);
+    // The report's training-view figures are those of the other 21 views.
+    assert_eq!(long["train"]["views"], 21);
+    let trained: Vec<&serde_json::Value> = eval["per_view"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|v| (v["view"].as_u64().unwrap() + 1) % 8 != 0)
+        .collect();
+    let reported = long["train"]["per_view"].as_array().unwrap();
+    assert_eq!(trained.len(), reported.len());
+    for (all, train) in trained.iter().zip(reported) {
+        for key in ["psnr", "psnr_masked", "ssim_masked"] {
+            assert_eq!(all[key], train[key], "{key}: {all} vs {train}");
+        }
+    }
     // A run in progress is evaluated from its checkpoint; a missing one is named.
     let missing = tmp.path().join("run.ply.checkpoint.safetensors");
     let out = omniscan(&["eval", missing.to_str().unwrap(), capture.to_str().unwrap()]);
