@@ -46,7 +46,7 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Run the whole pipeline on a built-in object: simulate a scan, check it, export it.
+    /// Run the whole pipeline on a built-in object: simulate a scan, mask it, merge the two arms, export it for nerfstudio, train a first twin.
     Demo {
         /// Where to write the demo's outputs.
         #[arg(long, default_value = "omniscan-demo")]
