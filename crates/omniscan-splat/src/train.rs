@@ -1432,6 +1432,56 @@ mod tests {
     use super::*;
     use crate::raster::Settings;
 
+    /// Adam as written in the paper (Kingma and Ba, algorithm 1), one value
+    /// at a time, for the chunked steps to be checked against.
+    fn reference_adam(p: &mut f32, m: &mut f32, v: &mut f32, grad: f32, lr: f32, t: i32) {
+        let (b1, b2, eps) = (0.9f32, 0.999f32, 1e-15f32);
+        *m = b1 * *m + (1.0 - b1) * grad;
+        *v = b2 * *v + (1.0 - b2) * grad * grad;
+        *p -= lr * (*m / (1.0 - b1.powi(t))) / ((*v / (1.0 - b2.powi(t))).sqrt() + eps);
+    }
+
+    #[test]
+    fn chunked_adam_steps_each_value_as_the_one_at_a_time_update() {
+        // Rows of SH (one rate for DC, another for the rest) with gradients
+        // for the first bands only, over enough rows to span several chunks.
+        let (stride, with_grads) = (12, 6);
+        let rows = 2 * ADAM_CHUNK / stride + 7;
+        let value = |i: usize, salt: f32| (i as f32 * 0.37 + salt).sin() * 0.01;
+        let mut rates = vec![2e-4f32; stride];
+        rates[..3].fill(3e-3);
+        let mut params: Vec<f32> = (0..rows * stride).map(|i| value(i, 1.0)).collect();
+        let mut expected = params.clone();
+        let (mut m, mut v) = (vec![0.0f32; params.len()], vec![0.0f32; params.len()]);
+        let mut adam = Adam::new(params.len());
+        for t in 1..=3 {
+            let grads: Vec<f32> = (0..rows * with_grads).map(|i| value(i, t as f32)).collect();
+            adam.step_rows(&mut params, &grads, with_grads, &rates, t);
+            for i in 0..expected.len() {
+                let (row, j) = (i / stride, i % stride);
+                let grad = if j < with_grads {
+                    grads[row * with_grads + j]
+                } else {
+                    0.0
+                };
+                reference_adam(&mut expected[i], &mut m[i], &mut v[i], grad, rates[j], t);
+            }
+        }
+        assert_eq!(params, expected);
+        assert_eq!((adam.m, adam.v), (m, v));
+        // One rate for every value: the flat path.
+        let mut flat = vec![0.5f32; 3 * rows];
+        let mut expected = flat.clone();
+        let (mut m, mut v) = (vec![0.0f32; flat.len()], vec![0.0f32; flat.len()]);
+        let mut adam = Adam::new(flat.len());
+        let grads: Vec<f32> = (0..flat.len()).map(|i| value(i, 5.0)).collect();
+        adam.step(&mut flat, &grads, 1e-3, 1);
+        for i in 0..expected.len() {
+            reference_adam(&mut expected[i], &mut m[i], &mut v[i], grads[i], 1e-3, 1);
+        }
+        assert_eq!(flat, expected);
+    }
+
     #[test]
     fn every_eighth_view_is_held_out() {
         let (train, held_out) = split_held_out((0..17).collect(), 8);
