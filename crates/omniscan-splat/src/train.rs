@@ -220,11 +220,12 @@ impl Adam {
     /// each row's gradients, the rest being zero (SH bands not yet in use).
     ///
     /// Plain loops over contiguous chunks, not a zip of per-element
-    /// iterators with a rate closure: the compiler vectorises them, and a
-    /// 3000-step DTU run spent 16% of its time here before (an integer
-    /// division per SH value picked its rate, and the unused bands' zero
-    /// gradients were copied out every step). Each value sees the same
-    /// operations as before, so the result is the same to the bit.
+    /// iterators with a rate closure: the compiler vectorises them. Before,
+    /// an integer division per SH value picked its rate and the unused
+    /// bands' zero gradients were copied out every step, and the optimiser
+    /// phase of a 3000-step DTU run (Adam and the densification statistics)
+    /// took 46 s of it; after, 10-13 s. Each value sees the same operations
+    /// as before, so the result is the same to the bit.
     fn step_rows(
         &mut self,
         params: &mut [f32],
