@@ -166,6 +166,11 @@ fn moment_strides(k: usize) -> [usize; 5] {
 /// Values per parallel task of an Adam step.
 const ADAM_CHUNK: usize = 1 << 14;
 
+/// Adam's decay rates of the first and second moments, and the ε of its
+/// denominator (gsplat's), on both backends.
+pub(crate) const ADAM_BETAS: (f32, f32) = (0.9, 0.999);
+pub(crate) const ADAM_EPSILON: f32 = 1e-15;
+
 /// Adam on equal-length runs of parameters, first and second moments and
 /// gradients (`None`: zero gradients, whose moments still decay).
 #[inline]
@@ -178,7 +183,7 @@ fn adam_update(
     c1: f32,
     c2: f32,
 ) {
-    let (b1, b2, eps) = (0.9f32, 0.999f32, 1e-15f32);
+    let ((b1, b2), eps) = (ADAM_BETAS, ADAM_EPSILON);
     let update = |param: &mut f32, m: &mut f32, v: &mut f32, grad: f32| {
         *m = b1 * *m + (1.0 - b1) * grad;
         *v = b2 * *v + (1.0 - b2) * grad * grad;
@@ -234,13 +239,27 @@ impl Adam {
         rates: &[f32],
         t: i32,
     ) {
-        let (b1, b2) = (0.9f32, 0.999f32);
+        let (b1, b2) = ADAM_BETAS;
         let c1 = 1.0 - b1.powi(t);
         let c2 = 1.0 - b2.powi(t);
         let stride = rates.len();
         debug_assert!(grads_per_row > 0 && grads_per_row <= stride);
-        // Rows of one rate step as one flat run (means, scales, opacities).
-        let uniform = rates.iter().all(|&r| r == rates[0]) && grads_per_row == stride;
+        // A row's runs of one rate, with or without gradients: the same for
+        // every row.
+        let mut runs: Vec<(std::ops::Range<usize>, f32, bool)> = Vec::new();
+        let mut j = 0;
+        while j < stride {
+            let with_grads = j < grads_per_row;
+            let end = if with_grads { grads_per_row } else { stride };
+            let mut e = j + 1;
+            while e < end && rates[e] == rates[j] {
+                e += 1;
+            }
+            runs.push((j..e, rates[j], with_grads));
+            j = e;
+        }
+        // Rows of one run step as one flat run (means, scales, opacities).
+        let uniform = runs.len() == 1 && grads_per_row == stride;
         let rows_per_chunk = ADAM_CHUNK.div_ceil(stride);
         let values = rows_per_chunk * stride;
         params
@@ -259,26 +278,16 @@ impl Adam {
                     .zip(v.chunks_exact_mut(stride))
                     .zip(grads.chunks_exact(grads_per_row));
                 for (((params, m), v), grads) in rows {
-                    // Runs of equal rate, with or without gradients.
-                    let mut j = 0;
-                    while j < stride {
-                        let rate = rates[j];
-                        let with_grads = j < grads_per_row;
-                        let end = if with_grads { grads_per_row } else { stride };
-                        let mut e = j + 1;
-                        while e < end && rates[e] == rate {
-                            e += 1;
-                        }
+                    for (run, rate, with_grads) in &runs {
                         adam_update(
-                            &mut params[j..e],
-                            &mut m[j..e],
-                            &mut v[j..e],
-                            with_grads.then(|| &grads[j..e]),
-                            rate,
+                            &mut params[run.clone()],
+                            &mut m[run.clone()],
+                            &mut v[run.clone()],
+                            with_grads.then(|| &grads[run.clone()]),
+                            *rate,
                             c1,
                             c2,
                         );
-                        j = e;
                     }
                 }
             });

@@ -343,7 +343,7 @@ impl GpuRenderer {
         t: i32,
     ) -> Result<(), SplatError> {
         let kernels = self.optimise()?;
-        let (b1, b2) = (0.9f32, 0.999f32);
+        let (b1, b2) = crate::train::ADAM_BETAS;
         let base = OptimiseParams {
             len: state.n,
             kind: 0,
@@ -359,7 +359,7 @@ impl GpuRenderer {
             beta2: b2,
             one_minus_beta1: 1.0 - b1,
             one_minus_beta2: 1.0 - b2,
-            epsilon: 1e-15,
+            epsilon: crate::train::ADAM_EPSILON,
             penalty: 0.0,
         };
         let stats_params = self.uniform(
