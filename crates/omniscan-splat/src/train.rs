@@ -465,28 +465,40 @@ pub fn step_loss(
 ) -> StepLoss {
     let (w, h) = (view.camera.width as usize, view.camera.height as usize);
     let n_px = w * h;
+    // The per-pixel work in parallel, the sums in pixel order (the same
+    // loss to the bit as one loop).
     let target: Vec<[f32; 3]> = (0..n_px)
+        .into_par_iter()
         .map(|i| {
             let m = view.object[i];
             [0, 1, 2].map(|c| view.image[i][c] * m + background[c] * (1.0 - m))
         })
         .collect();
-    let weight: Vec<f32> = view.gripper.iter().map(|g| 1.0 - g).collect();
+    let weight: Vec<f32> = view.gripper.par_iter().map(|g| 1.0 - g).collect();
     let wsum = weight.iter().sum::<f32>().max(1.0);
     let lam = config.lambda_ssim;
-    let mut d_rgb = vec![[0.0f32; 3]; n_px];
-    let mut d_alpha = vec![0.0f32; n_px];
+    let (d_rgb, d_alpha): (Vec<[f32; 3]>, Vec<f32>) = (0..n_px)
+        .into_par_iter()
+        .map(|i| {
+            let d_rgb = [0, 1, 2].map(|c| {
+                let d = r.rgb[i][c] - target[i][c];
+                (1.0 - lam) * weight[i] * d.signum() / (3.0 * wsum)
+            });
+            let da = r.alpha[i] - view.object[i];
+            (
+                d_rgb,
+                config.lambda_opacity * weight[i] * da.signum() / wsum,
+            )
+        })
+        .unzip();
+    let mut d_rgb = d_rgb;
     let mut l1 = 0.0f32;
     let mut lo = 0.0f32;
     for i in 0..n_px {
         for c in 0..3 {
-            let d = r.rgb[i][c] - target[i][c];
-            l1 += weight[i] * d.abs() / (3.0 * wsum);
-            d_rgb[i][c] = (1.0 - lam) * weight[i] * d.signum() / (3.0 * wsum);
+            l1 += weight[i] * (r.rgb[i][c] - target[i][c]).abs() / (3.0 * wsum);
         }
-        let da = r.alpha[i] - view.object[i];
-        lo += weight[i] * da.abs() / wsum;
-        d_alpha[i] = config.lambda_opacity * weight[i] * da.signum() / wsum;
+        lo += weight[i] * (r.alpha[i] - view.object[i]).abs() / wsum;
     }
     let ssim_weights: Vec<f64> = weight
         .iter()
@@ -503,11 +515,11 @@ pub fn step_loss(
         pixels: &target,
     };
     let (ssim, d_ssim) = weighted_ssim_and_gradient(&rendered, &wanted, &ssim_weights);
-    for i in 0..n_px {
+    d_rgb.par_iter_mut().zip(&d_ssim).for_each(|(d, s)| {
         for c in 0..3 {
-            d_rgb[i][c] -= lam * d_ssim[i][c];
+            d[c] -= lam * s[c];
         }
-    }
+    });
     let loss = (1.0 - lam) * l1 + lam * (1.0 - ssim as f32) + config.lambda_opacity * lo;
     let psnr = psnr(
         &rendered,
@@ -774,13 +786,18 @@ pub fn train_resumable(
             } else {
                 &grads.means2d
             };
-            for i in 0..s.len() {
-                if !mcmc && p.visible(i) {
-                    let gx = screen_gradients[i][0] * w as f32 * 0.5;
-                    let gy = screen_gradients[i][1] * h as f32 * 0.5;
-                    grad2d_sum[i] += (gx * gx + gy * gy).sqrt();
-                    grad2d_count[i] += 1;
-                }
+            if !mcmc {
+                grad2d_sum
+                    .par_iter_mut()
+                    .zip(grad2d_count.par_iter_mut())
+                    .enumerate()
+                    .filter(|(i, _)| p.visible(*i))
+                    .for_each(|(i, (sum, count))| {
+                        let gx = screen_gradients[i][0] * w as f32 * 0.5;
+                        let gy = screen_gradients[i][1] * h as f32 * 0.5;
+                        *sum += (gx * gx + gy * gy).sqrt();
+                        *count += 1;
+                    });
             }
             // Adam steps, in place on the parameters' flattened storage.
             adam[0].step(
