@@ -25,8 +25,8 @@ use rayon::prelude::*;
 use crate::Real;
 use crate::raster::{
     Appearance, Camera, Colors, Gaussians, LANES, Mode, Packed, Projected, Settings, SubTiles,
-    TILE, TileBins, ViewGeometry, bin_tiles, composite_lanes, covariance, lane_centres, lane_pixel,
-    quat_to_rotmat, rig_direction,
+    TILE, TileBins, ViewGeometry, bin_tiles, composite_lanes, covariance, filled, lane_centres,
+    lane_pixel, quat_to_rotmat, rig_direction,
 };
 use crate::sh;
 
@@ -239,11 +239,11 @@ pub(crate) fn backward_binned<F: Real>(
         })
         .collect();
 
-    let mut d_mean2d = zeros(n, [F::zero(); 2]);
-    let mut d_mean2d_abs = zeros(n, [F::zero(); 2]);
-    let mut d_conic = zeros(n, [F::zero(); 3]);
-    let mut d_opacity_view = zeros(n, F::zero());
-    let mut d_color_view = zeros(n, [F::zero(); 3]);
+    let mut d_mean2d = filled(n, [F::zero(); 2]);
+    let mut d_mean2d_abs = filled(n, [F::zero(); 2]);
+    let mut d_conic = filled(n, [F::zero(); 3]);
+    let mut d_opacity_view = filled(n, F::zero());
+    let mut d_color_view = filled(n, [F::zero(); 3]);
     d_mean2d
         .par_chunks_mut(bucket_size)
         .zip(d_mean2d_abs.par_chunks_mut(bucket_size))
@@ -275,23 +275,17 @@ pub(crate) fn backward_binned<F: Real>(
         conics: d_conic,
         opacities_view: d_opacity_view,
         colors_view: d_color_view,
-        means: zeros(n, [F::zero(); 3]),
-        quats: zeros(n, [F::zero(); 4]),
-        scales: zeros(n, [F::zero(); 3]),
-        opacities: zeros(n, F::zero()),
+        means: filled(n, [F::zero(); 3]),
+        quats: filled(n, [F::zero(); 4]),
+        scales: filled(n, [F::zero(); 3]),
+        opacities: filled(n, F::zero()),
         colors: match &g.colors {
-            Colors::Rgb(c) => zeros(c.len(), [F::zero(); 3]),
-            Colors::Sh { coeffs, .. } => zeros(coeffs.len(), [F::zero(); 3]),
+            Colors::Rgb(c) => filled(c.len(), [F::zero(); 3]),
+            Colors::Sh { coeffs, .. } => filled(coeffs.len(), [F::zero(); 3]),
         },
     };
     project_backward(g, camera, settings, p, &mut grads);
     grads
-}
-
-/// `n` copies of `zero`, written by all threads: one thread filling the
-/// gradients' ten arrays was a second of a 3000-step DTU run on its own.
-fn zeros<T: Copy + Send + Sync>(n: usize, zero: T) -> Vec<T> {
-    (0..n).into_par_iter().map(|_| zero).collect()
 }
 
 fn mat3_mul<F: Real>(a: &[[F; 3]; 3], b: &[[F; 3]; 3]) -> [[F; 3]; 3] {
