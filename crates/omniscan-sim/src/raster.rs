@@ -109,6 +109,11 @@ pub struct RenderedView {
     pub labels: Vec<Label>,
 }
 
+/// A tile's side in samples, at most: a tile is a whole number of pixels,
+/// `(TILE / supersample) · supersample` samples, so that it resolves into
+/// exactly the pixels it covers. (At 3x3 supersampling 32-sample tiles
+/// resolved into 10 pixels each, dropping the rest of their samples and
+/// shrinking the image by 30/32 towards its top-left corner.)
 const TILE: i32 = 32;
 const NEAR: f32 = 0.005;
 const NO_TRIANGLE: u32 = u32::MAX;
@@ -175,31 +180,61 @@ pub fn render(
         width: sw,
         height: sh,
     };
-    let triangles: Vec<ScreenTriangle> = prepared
-        .par_iter()
+    // Runs of triangles project (and bin, below) on every thread; the
+    // results keep mesh order. (Per instance, the object's mesh was one
+    // thread's work while the other waited.)
+    const RUN: usize = 4096;
+    let runs: Vec<(usize, std::ops::Range<usize>)> = prepared
+        .iter()
         .enumerate()
-        .flat_map_iter(|(i, inst)| {
+        .flat_map(|(i, inst)| {
+            let n = inst.mesh.triangles.len();
+            (0..n.div_ceil(RUN)).map(move |r| (i, r * RUN..((r + 1) * RUN).min(n)))
+        })
+        .collect();
+    let triangles: Vec<ScreenTriangle> = runs
+        .par_iter()
+        .flat_map_iter(|(i, range)| {
+            let inst = &prepared[*i];
             let mut out = Vec::new();
-            for (t, tri) in inst.mesh.triangles.iter().enumerate() {
-                let v = tri.map(|v| inst.camera_positions[v as usize]);
-                projection.clip_and_project(v, i as u32, t as u32, &mut out);
+            for t in range.clone() {
+                let v = inst.mesh.triangles[t].map(|v| inst.camera_positions[v as usize]);
+                projection.clip_and_project(v, *i as u32, t as u32, &mut out);
             }
             out
         })
         .collect();
 
-    // Bin triangles into tiles.
-    let tiles_x = (sw + TILE - 1) / TILE;
-    let tiles_y = (sh + TILE - 1) / TILE;
-    let mut bins: Vec<Vec<u32>> = vec![Vec::new(); (tiles_x * tiles_y) as usize];
-    for (i, tri) in triangles.iter().enumerate() {
-        let [x0, y0, x1, y1] = tri.bbox;
-        for ty in (y0 / TILE)..=(y1 / TILE) {
-            for tx in (x0 / TILE)..=(x1 / TILE) {
-                bins[(ty * tiles_x + tx) as usize].push(i as u32);
+    // Bin triangles into tiles, each bin in triangle order.
+    let tile = TILE / ss * ss;
+    let tiles_x = (sw + tile - 1) / tile;
+    let tiles_y = (sh + tile - 1) / tile;
+    let tile_count = (tiles_x * tiles_y) as usize;
+    let partial: Vec<Vec<Vec<u32>>> = triangles
+        .par_chunks(RUN)
+        .enumerate()
+        .map(|(r, run)| {
+            let mut bins: Vec<Vec<u32>> = vec![Vec::new(); tile_count];
+            for (k, tri) in run.iter().enumerate() {
+                let [x0, y0, x1, y1] = tri.bbox;
+                for ty in (y0 / tile)..=(y1 / tile) {
+                    for tx in (x0 / tile)..=(x1 / tile) {
+                        bins[(ty * tiles_x + tx) as usize].push((r * RUN + k) as u32);
+                    }
+                }
             }
-        }
-    }
+            bins
+        })
+        .collect();
+    let bins: Vec<Vec<u32>> = (0..tile_count)
+        .into_par_iter()
+        .map(|b| {
+            partial
+                .iter()
+                .flat_map(|run| run[b].iter().copied())
+                .collect()
+        })
+        .collect();
 
     // Lights in camera space.
     let r_wc = world_to_camera.rotation.cast::<f32>();
@@ -212,6 +247,7 @@ pub fn render(
         width: sw,
         height: sh,
         supersample: ss,
+        tile,
     };
     let shader = Shader {
         prepared: &prepared,
@@ -245,18 +281,30 @@ pub fn render(
         depth: vec![0.0; n],
         labels: vec![Label::Scene; n],
     };
-    let tile_px = TILE / ss;
-    for (tx, ty, out) in tile_outputs {
-        for ly in 0..out.height {
-            for lx in 0..out.width {
-                let (x, y) = (tx * tile_px + lx, ty * tile_px + ly);
-                let src = (ly * out.width + lx) as usize;
-                let dst = (y * width + x) as usize;
-                view.rgb[dst * 3..dst * 3 + 3].copy_from_slice(&out.rgb[src]);
-                view.depth[dst] = out.depth[src];
-                view.labels[dst] = out.labels[src];
-            }
-        }
+    // Each band of tile rows is copied in by its own thread.
+    let tile_px = tile / ss;
+    let band = (tile_px * width) as usize;
+    if band > 0 {
+        (
+            view.rgb.par_chunks_mut(3 * band),
+            view.depth.par_chunks_mut(band),
+            view.labels.par_chunks_mut(band),
+        )
+            .into_par_iter()
+            .zip(tile_outputs.par_chunks(tiles_x as usize))
+            .for_each(|((rgb, depth, labels), row)| {
+                for (tx, _, out) in row {
+                    for ly in 0..out.height {
+                        for lx in 0..out.width {
+                            let src = (ly * out.width + lx) as usize;
+                            let dst = (ly * width + tx * tile_px + lx) as usize;
+                            rgb[dst * 3..dst * 3 + 3].copy_from_slice(&out.rgb[src]);
+                            depth[dst] = out.depth[src];
+                            labels[dst] = out.labels[src];
+                        }
+                    }
+                }
+            });
     }
     view
 }
@@ -370,6 +418,8 @@ struct SampleGrid {
     width: i32,
     height: i32,
     supersample: i32,
+    /// Tile side in samples (see [`TILE`]).
+    tile: i32,
 }
 
 fn rasterize_tile(
@@ -384,10 +434,11 @@ fn rasterize_tile(
         width: sw,
         height: sh,
         supersample: ss,
+        tile,
     } = grid;
-    let (ox, oy) = (tx * TILE, ty * TILE);
-    let tw = TILE.min(sw - ox);
-    let th = TILE.min(sh - oy);
+    let (ox, oy) = (tx * tile, ty * tile);
+    let tw = tile.min(sw - ox);
+    let th = tile.min(sh - oy);
     let mut samples = vec![
         Sample {
             inv_z: 0.0,
@@ -679,6 +730,50 @@ mod tests {
         assert!((r - (0.8 * (0.3 + 0.7) + 0.15 * 0.7)).abs() < 0.01, "{r}");
         assert_eq!(view.labels[0], Label::Scene);
         assert_eq!(view.depth[0], 0.0);
+    }
+
+    #[test]
+    fn every_supersampling_puts_the_silhouette_in_the_same_place() {
+        // A box in the image's lower right, where tiles that resolve into
+        // the wrong pixels would have moved it most.
+        let mesh = unit_box([0.8, 0.2, 0.2]);
+        let (k, pose) = camera();
+        let inst = [Instance {
+            mesh: &mesh,
+            to_world: Isometry3::translation(-1.2, -0.8, 0.0),
+            label: Label::Object,
+            decals: &[],
+        }];
+        let silhouette = |ss: u32| {
+            let view = render(&inst, &lighting(), &k, &pose, ss);
+            let (mut n, mut sx, mut sy) = (0.0, 0.0, 0.0);
+            for (i, l) in view.labels.iter().enumerate() {
+                if *l == Label::Object {
+                    n += 1.0;
+                    sx += (i % 64) as f64;
+                    sy += (i / 64) as f64;
+                }
+            }
+            (n, sx / n, sy / n)
+        };
+        let (n1, x1, y1) = silhouette(1);
+        assert!(
+            x1 > 40.0 && y1 > 30.0,
+            "the box should sit lower right: {x1}, {y1}"
+        );
+        for ss in 2..=4 {
+            let (n, x, y) = silhouette(ss);
+            // Even supersampling has ties at the edges (two of four
+            // samples), which move the count and the centroid a little.
+            assert!(
+                (n - n1).abs() < 0.15 * n1,
+                "supersample {ss}: {n} pixels against {n1}"
+            );
+            assert!(
+                (x - x1).abs() < 0.5 && (y - y1).abs() < 0.5,
+                "supersample {ss}: centroid ({x}, {y}) against ({x1}, {y1})"
+            );
+        }
     }
 
     #[test]
