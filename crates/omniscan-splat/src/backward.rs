@@ -621,8 +621,19 @@ mod tests {
     );
 
     fn scene(mode: Mode, sh_degree: Option<usize>, appearance: Appearance) -> Scene {
+        scene_of(12, 1, mode, sh_degree, appearance)
+    }
+
+    /// `n` Gaussians seen by an image `zoom` times the base 24x20 (same
+    /// field of view).
+    fn scene_of(
+        n: usize,
+        zoom: u32,
+        mode: Mode,
+        sh_degree: Option<usize>,
+        appearance: Appearance,
+    ) -> Scene {
         let mut r = Lcg(7);
-        let n = 12;
         let mut g = Gaussians {
             means: (0..n)
                 .map(|_| [r.next() - 0.5, r.next() - 0.5, 2.0 + r.next()])
@@ -665,12 +676,12 @@ mod tests {
                 [0.0, 0.28, 0.96, 0.0],
                 [0.0, 0.0, 0.0, 1.0],
             ],
-            fx: 30.0,
-            fy: 28.0,
-            cx: 12.3,
-            cy: 9.7,
-            width: 24,
-            height: 20,
+            fx: 30.0 * zoom as f64,
+            fy: 28.0 * zoom as f64,
+            cx: 12.3 * zoom as f64,
+            cy: 9.7 * zoom as f64,
+            width: 24 * zoom,
+            height: 20 * zoom,
             near: 0.01,
             far: 100.0,
         };
@@ -777,6 +788,58 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// With more Gaussians than merge buckets, each bucket sums several
+    /// Gaussians' partials from several tiles: a wrong bucket boundary or
+    /// offset would give another Gaussian's gradient.
+    #[test]
+    fn gradients_merged_by_bucket_agree_with_central_differences() {
+        let (g, camera, settings, w_rgb, w_a) =
+            scene_of(150, 3, Mode::Classic, None, Appearance::ViewDirection);
+        assert!(g.means.len() > 4 * MERGE_BUCKETS);
+        let (p, _) = render(&g, &camera, &settings);
+        assert!(camera.width.div_ceil(TILE) * camera.height.div_ceil(TILE) >= 16);
+        let grads = backward(&g, &camera, &settings, &p, &w_rgb, &w_a);
+        let h = 1e-6;
+        let mut checked = 0;
+        // Each bucket's first and last Gaussians, and one inside.
+        let bucket = g.means.len().div_ceil(MERGE_BUCKETS);
+        for b in 0..MERGE_BUCKETS {
+            for i in [b * bucket, b * bucket + 2, (b + 1) * bucket - 1] {
+                if i >= g.means.len() || !p.visible(i) {
+                    continue;
+                }
+                let numeric = |edit: &dyn Fn(&mut Gaussians<f64>, f64)| {
+                    let mut plus = g.clone();
+                    edit(&mut plus, h);
+                    let mut minus = g.clone();
+                    edit(&mut minus, -h);
+                    (loss(&plus, &camera, &settings, &w_rgb, &w_a)
+                        - loss(&minus, &camera, &settings, &w_rgb, &w_a))
+                        / (2.0 * h)
+                };
+                for (name, analytic, fd) in [
+                    (
+                        "opacity",
+                        grads.opacities[i],
+                        numeric(&|g, e| g.opacities[i] += e),
+                    ),
+                    (
+                        "mean x",
+                        grads.means[i][0],
+                        numeric(&|g, e| g.means[i][0] += e),
+                    ),
+                ] {
+                    assert!(
+                        (analytic - fd).abs() <= 1e-4 * (1.0 + fd.abs()),
+                        "Gaussian {i} {name}: analytic {analytic} vs numeric {fd}"
+                    );
+                }
+                checked += 1;
+            }
+        }
+        assert!(checked > 40, "only {checked} Gaussians were visible");
     }
 
     /// AbsGS's statistic is the sum over pixels of each pixel's own 2D mean
