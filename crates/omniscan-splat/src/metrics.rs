@@ -105,8 +105,8 @@ struct SsimParts {
 
 /// The channels run in parallel, and so does each one's per-pixel work:
 /// every value is computed as one serial pass would, so the maps are the
-/// same to the bit (in training, serial loops here were a fifth of a
-/// 3000-step DTU run's one-thread time).
+/// same to the bit (in training, these loops on one thread were a fifth of
+/// a 3000-step DTU run's serial time, while the other threads waited).
 fn ssim_parts(x: &ImageView, y: &ImageView) -> SsimParts {
     let (w, h) = (x.width, x.height);
     let maps = (0..3)

@@ -477,7 +477,7 @@ pub fn step_loss(
     let weight: Vec<f32> = view.gripper.par_iter().map(|g| 1.0 - g).collect();
     let wsum = weight.iter().sum::<f32>().max(1.0);
     let lam = config.lambda_ssim;
-    let (d_rgb, d_alpha): (Vec<[f32; 3]>, Vec<f32>) = (0..n_px)
+    let (mut d_rgb, d_alpha): (Vec<[f32; 3]>, Vec<f32>) = (0..n_px)
         .into_par_iter()
         .map(|i| {
             let d_rgb = [0, 1, 2].map(|c| {
@@ -491,7 +491,6 @@ pub fn step_loss(
             )
         })
         .unzip();
-    let mut d_rgb = d_rgb;
     let mut l1 = 0.0f32;
     let mut lo = 0.0f32;
     for i in 0..n_px {
