@@ -723,6 +723,24 @@ mod tests {
         l
     }
 
+    /// The loss's central difference under `edit(g, ±h)`, h = 1e-6.
+    fn central_difference(
+        g: &Gaussians<f64>,
+        camera: &Camera<f64>,
+        settings: &Settings<f64>,
+        w_rgb: &[[f64; 3]],
+        w_a: &[f64],
+        edit: &dyn Fn(&mut Gaussians<f64>, f64),
+    ) -> f64 {
+        let h = 1e-6;
+        let mut plus = g.clone();
+        edit(&mut plus, h);
+        let mut minus = g.clone();
+        edit(&mut minus, -h);
+        (loss(&plus, camera, settings, w_rgb, w_a) - loss(&minus, camera, settings, w_rgb, w_a))
+            / (2.0 * h)
+    }
+
     #[test]
     fn gradients_agree_with_central_differences() {
         for (mode, sh_degree, appearance) in [
@@ -734,15 +752,8 @@ mod tests {
             let (g, camera, settings, w_rgb, w_a) = scene(mode, sh_degree, appearance);
             let (p, _) = render(&g, &camera, &settings);
             let grads = backward(&g, &camera, &settings, &p, &w_rgb, &w_a);
-            let h = 1e-6;
             let numeric = |edit: &dyn Fn(&mut Gaussians<f64>, f64)| {
-                let mut plus = g.clone();
-                edit(&mut plus, h);
-                let mut minus = g.clone();
-                edit(&mut minus, -h);
-                (loss(&plus, &camera, &settings, &w_rgb, &w_a)
-                    - loss(&minus, &camera, &settings, &w_rgb, &w_a))
-                    / (2.0 * h)
+                central_difference(&g, &camera, &settings, &w_rgb, &w_a, edit)
             };
             let compare = |name: &str, analytic: f64, fd: f64| {
                 assert!(
@@ -801,7 +812,6 @@ mod tests {
         let (p, _) = render(&g, &camera, &settings);
         assert!(camera.width.div_ceil(TILE) * camera.height.div_ceil(TILE) >= 16);
         let grads = backward(&g, &camera, &settings, &p, &w_rgb, &w_a);
-        let h = 1e-6;
         let mut checked = 0;
         // Each bucket's first and last Gaussians, and one inside.
         let bucket = g.means.len().div_ceil(MERGE_BUCKETS);
@@ -811,13 +821,7 @@ mod tests {
                     continue;
                 }
                 let numeric = |edit: &dyn Fn(&mut Gaussians<f64>, f64)| {
-                    let mut plus = g.clone();
-                    edit(&mut plus, h);
-                    let mut minus = g.clone();
-                    edit(&mut minus, -h);
-                    (loss(&plus, &camera, &settings, &w_rgb, &w_a)
-                        - loss(&minus, &camera, &settings, &w_rgb, &w_a))
-                        / (2.0 * h)
+                    central_difference(&g, &camera, &settings, &w_rgb, &w_a, edit)
                 };
                 for (name, analytic, fd) in [
                     (
