@@ -256,20 +256,12 @@ pub fn render(
         ambient: lighting.ambient,
     };
 
-    let tile_outputs: Vec<(i32, i32, TileOutput)> = (0..tiles_y)
-        .flat_map(|ty| (0..tiles_x).map(move |tx| (tx, ty)))
-        .collect::<Vec<_>>()
+    // In tile order, row by row.
+    let tile_outputs: Vec<TileOutput> = (0..tiles_x * tiles_y)
         .into_par_iter()
-        .map(|(tx, ty)| {
-            let out = rasterize_tile(
-                tx,
-                ty,
-                grid,
-                &bins[(ty * tiles_x + tx) as usize],
-                &triangles,
-                &shader,
-            );
-            (tx, ty, out)
+        .map(|t| {
+            let (tx, ty) = (t % tiles_x, t / tiles_x);
+            rasterize_tile(tx, ty, grid, &bins[t as usize], &triangles, &shader)
         })
         .collect();
 
@@ -293,7 +285,7 @@ pub fn render(
             .into_par_iter()
             .zip(tile_outputs.par_chunks(tiles_x as usize))
             .for_each(|((rgb, depth, labels), row)| {
-                for (tx, _, out) in row {
+                for (tx, out) in (0..).zip(row) {
                     for ly in 0..out.height {
                         for lx in 0..out.width {
                             let src = (ly * out.width + lx) as usize;

@@ -624,7 +624,8 @@ pub(crate) fn rasterize_binned<F: Real>(
     let TileBins { packed, tiles } = bins;
     let tx = width.div_ceil(TILE);
     let n = (width * height) as usize;
-    let tile_out: Vec<(u32, Vec<PixelResult<F>>)> = (0..tiles.len() as u32)
+    // In tile order, row by row.
+    let tile_out: Vec<Vec<PixelResult<F>>> = (0..tiles.len() as u32)
         .into_par_iter()
         .map(|t| {
             let (ox, oy) = ((t % tx) * TILE, (t / tx) * TILE);
@@ -640,7 +641,7 @@ pub(crate) fn rasterize_binned<F: Real>(
                     composite_block(local, pixels, width, background, &mut out);
                 }
             }
-            (t, out)
+            out
         })
         .collect();
     let mut r = Render {
@@ -668,7 +669,7 @@ pub(crate) fn rasterize_binned<F: Real>(
             .enumerate()
             .for_each(|(row, ((rgb, alpha, depth, median, count), tiles))| {
                 let first = row * band;
-                for (_, pixels) in tiles {
+                for pixels in tiles {
                     for &(i, c, a, d, m, k) in pixels {
                         let i = i - first;
                         rgb[i] = c;
