@@ -28,6 +28,7 @@ pub mod raster;
 pub mod sh;
 pub mod train;
 pub mod transform;
+pub mod views;
 
 /// Helpers the unit tests share.
 #[cfg(test)]

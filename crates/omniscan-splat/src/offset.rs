@@ -47,12 +47,13 @@ use omniscan_core::Pose;
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::Real;
 use crate::backward::backward;
 use crate::raster::{Camera, Gaussians, Settings, project, rasterize};
-use crate::train::View;
+use crate::views::View;
 use crate::{SplatError, Splats};
 
 /// Settings of [`refine_offset`].
@@ -283,7 +284,7 @@ pub fn refine_offset(
     let centre_f = [0, 1, 2].map(|a| centre[a] as f32);
     let mean_loss = |offset: &Pose| -> f64 {
         let (sum, counted) = views
-            .iter()
+            .par_iter()
             .map(|v| {
                 let camera = offset_camera::<f32>(&v.camera, offset);
                 let (l, _, c) = loss_and_gradient(
@@ -298,6 +299,9 @@ pub fn refine_offset(
                 );
                 (l as f64, c.iter().any(|&x| x))
             })
+            .collect::<Vec<_>>()
+            .into_iter()
+            // Summed in view order, so the loss does not depend on the threads.
             .fold((0.0, 0usize), |(s, k), (l, any)| {
                 (s + l, k + usize::from(any))
             });
@@ -319,24 +323,37 @@ pub fn refine_offset(
     let (mut m, mut v) = ([0.0f64; 6], [0.0f64; 6]);
     let (beta1, beta2) = (0.9f64, 0.999f64);
     for step in 1..=config.steps {
+        let batch: Vec<usize> = (0..config.batch)
+            .map(|_| {
+                if order.is_empty() {
+                    order = (0..views.len()).collect();
+                    order.shuffle(&mut rng);
+                }
+                order.pop().unwrap_or(0)
+            })
+            .collect();
+        // The batch's views render on all threads at once: one view at a
+        // time left threads idle on the views' serial parts.
+        let view_gradients: Vec<[f32; 6]> = batch
+            .par_iter()
+            .map(|&i| {
+                let view = &views[i];
+                let camera = offset_camera::<f32>(&view.camera, &offset);
+                let (_, d, _) = loss_and_gradient(
+                    &g,
+                    &camera,
+                    &settings,
+                    view,
+                    centre_f,
+                    None,
+                    config.silhouette,
+                    true,
+                );
+                d
+            })
+            .collect();
         let mut gradient = [0.0f64; 6];
-        for _ in 0..config.batch {
-            if order.is_empty() {
-                order = (0..views.len()).collect();
-                order.shuffle(&mut rng);
-            }
-            let view = &views[order.pop().unwrap_or(0)];
-            let camera = offset_camera::<f32>(&view.camera, &offset);
-            let (_, d, _) = loss_and_gradient(
-                &g,
-                &camera,
-                &settings,
-                view,
-                centre_f,
-                None,
-                config.silhouette,
-                true,
-            );
+        for d in view_gradients {
             for (to, from) in gradient.iter_mut().zip(d) {
                 *to += from as f64;
             }
@@ -559,6 +576,27 @@ mod tests {
         )
         .unwrap();
         assert!(found.accepted);
+        // The same answer, to the bit, on other numbers of threads.
+        for threads in [1, 3] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let again = pool
+                .install(|| {
+                    refine_offset(
+                        &model,
+                        &shifted,
+                        &OffsetConfig {
+                            steps: 150,
+                            ..OffsetConfig::default()
+                        },
+                    )
+                })
+                .unwrap();
+            assert_eq!(again.offset, found.offset, "{threads} threads");
+            assert_eq!(again.loss_after, found.loss_after, "{threads} threads");
+        }
         let (angle, distance) = omniscan_core::geometry::pose_difference(&found.offset, &error);
         let (start_angle, start_distance) =
             omniscan_core::geometry::pose_difference(&Pose::identity(), &error);

@@ -32,20 +32,8 @@ use crate::gpu::training::{HostState, LossTarget, McmcStep, StepRates};
 use crate::metrics::{ImageView, psnr, weighted_ssim_and_gradient};
 use crate::raster::{Camera, bin_tiles, project, rasterize, rasterize_binned};
 use crate::sh::{C0, coefficients};
+use crate::views::View;
 use crate::{SplatError, Splats};
-
-/// One training image with its masks.
-#[derive(Debug, Clone)]
-pub struct View {
-    pub camera: Camera<f32>,
-    pub image: Vec<[f32; 3]>,
-    /// 1 on the object, 0 elsewhere.
-    pub object: Vec<f32>,
-    /// 1 on the gripper (excluded from every loss term), 0 elsewhere.
-    pub gripper: Vec<f32>,
-    /// Sensor depth along the optical axis, metres, 0 where unknown; empty if the capture has none.
-    pub depth: Vec<f32>,
-}
 
 /// Training settings.
 #[derive(Debug, Clone, Copy)]
@@ -1020,206 +1008,6 @@ fn densify(
     *s = out;
 }
 
-/// Splits views into training and held-out ones: every `every`-th view is
-/// held out, counting from one (views 7, 15, 23… for 8); 0 holds out
-/// nothing. (3DGS and gsplat hold out 0, 8, 16…, which
-/// [`split_held_out_from`] with `first` `Some(0)` gives.) A capture stores
-/// its views latitude by latitude, so when the wrist angles per latitude are
-/// a multiple of `every` either split holds out one whole column of wrist
-/// angles: on the CLI test's 8x3 capture, views 0, 8 and 16 are all at 0°,
-/// leaving a 90° gap between the training columns either side (there, gsplat's
-/// split came out worse after 300 steps than after 10). Trained on all 24
-/// views, those three fit as well as the rest (32.7-33.9 dB against
-/// 31.9-36.4 dB after 300 steps), so their poses and images agree with the
-/// others and the gap is what held them back; why the 0° column suffers more
-/// than the 315° one (this split's) is not measured. The paper's 20 wrist
-/// angles with every 8th held out spread the held-out views around the object.
-pub fn split_held_out<T>(views: Vec<T>, every: usize) -> (Vec<T>, Vec<T>) {
-    split_held_out_from(views, every, None)
-}
-
-/// Holds out views `first`, `first + every`, `first + 2·every`, … (`first`
-/// is taken modulo `every`; `None` is `every − 1`, as [`split_held_out`]);
-/// `every` 0 holds out nothing.
-pub fn split_held_out_from<T>(
-    views: Vec<T>,
-    every: usize,
-    first: Option<usize>,
-) -> (Vec<T>, Vec<T>) {
-    let first = first.unwrap_or(every.saturating_sub(1));
-    let (mut train, mut held_out) = (Vec::new(), Vec::new());
-    for (i, v) in views.into_iter().enumerate() {
-        if every > 0 && i % every == first % every {
-            held_out.push(v);
-        } else {
-            train.push(v);
-        }
-    }
-    (train, held_out)
-}
-
-/// `downscale` as a factor: 0 is refused (it was taken as 1, so a typo
-/// trained at full size, four times the work of the default).
-fn downscale_factor(downscale: u32) -> Result<u32, SplatError> {
-    if downscale == 0 {
-        return Err(SplatError::Invalid(
-            "the downscale factor must be at least 1 (1: full size)".into(),
-        ));
-    }
-    Ok(downscale)
-}
-
-/// A photo and its object mask shrunk by `f` (box filter): each pixel's
-/// object coverage, and its colour averaged over its object sub-pixels only
-/// (over all of them where it has none). Colour × coverage is then the
-/// object alone over black, the exact shrunk composite that training and
-/// evaluation compare renders with. Averaging the whole photo instead mixed
-/// the background behind the object's edge (DTU's white table beside dark
-/// steel) into every edge pixel's target, an error no render of the object
-/// can match.
-fn shrink_object(
-    rgb: &omniscan_core::image_io::RgbImage,
-    mask: &omniscan_core::image_io::Mask,
-    f: u32,
-) -> (Vec<[f32; 3]>, Vec<f32>) {
-    let (w, h, f) = (
-        (rgb.width / f) as usize,
-        (rgb.height / f) as usize,
-        f as usize,
-    );
-    let full_w = rgb.width as usize;
-    let mut image = vec![[0.0f32; 3]; w * h];
-    let mut coverage = vec![0.0f32; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let (mut all, mut object, mut inside) = ([0u32; 3], [0u32; 3], 0u32);
-            for dy in 0..f {
-                for dx in 0..f {
-                    let p = (y * f + dy) * full_w + x * f + dx;
-                    let is_object = mask.data[p] >= 128;
-                    inside += is_object as u32;
-                    for c in 0..3 {
-                        let v = rgb.data[p * 3 + c] as u32;
-                        all[c] += v;
-                        object[c] += v * is_object as u32;
-                    }
-                }
-            }
-            let o = y * w + x;
-            coverage[o] = inside as f32 / (f * f) as f32;
-            let (sum, count) = if inside > 0 {
-                (object, inside)
-            } else {
-                (all, (f * f) as u32)
-            };
-            image[o] = sum.map(|v| v as f32 / 255.0 / count as f32);
-        }
-    }
-    (image, coverage)
-}
-
-/// Training views from a capture: images, object masks and gripper masks
-/// (the frames' own masks, else the simulator's ground truth), cameras in the
-/// reconstruction frame of `set`, images shrunk by `downscale` (box filter).
-pub fn views_from_capture(
-    capture: &omniscan_core::Capture,
-    set: omniscan_core::poses::ViewSet,
-    downscale: u32,
-) -> Result<Vec<View>, SplatError> {
-    use omniscan_core::image_io::{read_mask, read_rgb};
-    let f = downscale_factor(downscale)?;
-    let k = capture.intrinsics();
-    let (w, h) = (k.width / f, k.height / f);
-    if w < 8 || h < 8 {
-        return Err(SplatError::Invalid(format!(
-            "downscale {f} leaves a {w}x{h} image"
-        )));
-    }
-    let views = omniscan_core::poses::camera_views(capture, set);
-    let mut out = Vec::with_capacity(views.len());
-    for v in views {
-        let frame = &capture.file.frames[v.frame_index];
-        let gt = frame.gt.as_ref();
-        let object_path = frame
-            .object_mask_path
-            .clone()
-            .or_else(|| gt.and_then(|g| g.object_mask_path.clone()));
-        let gripper_path = frame
-            .gripper_mask_path
-            .clone()
-            .or_else(|| gt.and_then(|g| g.gripper_mask_path.clone()));
-        let (Some(object_path), Some(gripper_path)) = (object_path, gripper_path) else {
-            return Err(SplatError::Invalid(format!(
-                "{}: no object or gripper mask; run `omniscan mask` first",
-                frame.file_path
-            )));
-        };
-        let rgb = read_rgb(&capture.resolve(&frame.file_path))?;
-        let depth_map = match &frame.depth_path {
-            Some(d) => Some(omniscan_core::image_io::read_depth(&capture.resolve(d))?),
-            None => None,
-        };
-        let object = read_mask(&capture.resolve(&object_path))?;
-        let gripper = read_mask(&capture.resolve(&gripper_path))?;
-        for (name, (mw, mh)) in [
-            ("object mask", (object.width, object.height)),
-            ("gripper mask", (gripper.width, gripper.height)),
-        ] {
-            if (mw, mh) != (rgb.width, rgb.height) {
-                return Err(SplatError::Invalid(format!(
-                    "{}: {name} is {mw}x{mh}, the image {}x{}",
-                    frame.file_path, rgb.width, rgb.height
-                )));
-            }
-        }
-        let full_w = rgb.width as usize;
-        let (image, obj) = shrink_object(&rgb, &object, f);
-        // Depth: the nearest valid sample of each block.
-        let mut depth = match &depth_map {
-            Some(_) => vec![0.0f32; (w * h) as usize],
-            None => Vec::new(),
-        };
-        let mut grip = vec![0.0f32; (w * h) as usize];
-        let area = (f * f) as f32;
-        for y in 0..h as usize {
-            for x in 0..w as usize {
-                let o = y * w as usize + x;
-                for dy in 0..f as usize {
-                    for dx in 0..f as usize {
-                        let i = (y * f as usize + dy) * full_w + x * f as usize + dx;
-                        if let Some(d) = &depth_map {
-                            let z = d.data[i] as f32 * 0.001;
-                            if z > 0.0 && (depth[o] == 0.0 || z < depth[o]) {
-                                depth[o] = z;
-                            }
-                        }
-                        grip[o] += (gripper.data[i] >= 128) as u8 as f32 / area;
-                    }
-                }
-                // A pixel partly covered by the gripper is left out of the loss.
-                grip[o] = if grip[o] > 0.0 { 1.0 } else { 0.0 };
-            }
-        }
-        let shrunk = omniscan_core::Intrinsics {
-            width: w,
-            height: h,
-            fx: k.fx / f as f64,
-            fy: k.fy / f as f64,
-            cx: k.cx / f as f64,
-            cy: k.cy / f as f64,
-        };
-        let camera = Camera::from_pose(&v.camera_to_object, &shrunk);
-        out.push(View {
-            camera,
-            image,
-            object: obj,
-            gripper: grip,
-            depth,
-        });
-    }
-    Ok(out)
-}
-
 /// PSNR and SSIM over whole images (on black) and masked by object ∩
 /// accumulation minus gripper (the paper's evaluation), averaged over views.
 pub fn evaluate(
@@ -1227,77 +1015,100 @@ pub fn evaluate(
     views: &[View],
     lpips: Option<&crate::lpips::Lpips>,
 ) -> Result<serde_json::Value, SplatError> {
+    evaluate_views(
+        model,
+        views.len(),
+        |i| Ok(std::borrow::Cow::Borrowed(&views[i])),
+        lpips,
+        |_, _, _| Ok(()),
+    )
+}
+
+/// [`evaluate`] over `count` views that `view(i)` gives (a view read from
+/// disk is dropped once compared), views on all threads; `rendered(i, view,
+/// rgb)` is handed each render. The figures do not depend on the threads:
+/// each view's are its own, and the means add them in view order.
+pub fn evaluate_views<'a>(
+    model: &Splats,
+    count: usize,
+    view: impl Fn(usize) -> Result<std::borrow::Cow<'a, View>, SplatError> + Sync,
+    lpips: Option<&crate::lpips::Lpips>,
+    rendered: impl Fn(usize, &View, &[[f32; 3]]) -> Result<(), SplatError> + Sync,
+) -> Result<serde_json::Value, SplatError> {
     use crate::metrics::ssim;
     let g = model.gaussians::<f32>();
     let settings = model.render_settings([0.0; 3]);
-    let (mut p_all, mut s_all, mut p_mask, mut s_mask) =
-        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-    let (mut l_all, mut l_mask) = (Vec::new(), Vec::new());
-    // Each view's own figures, so a user can see which views pull the mean down.
-    let mut per_view = Vec::with_capacity(views.len());
-    for v in views {
-        let p = project(&g, &v.camera, &settings);
-        let r = rasterize(&p, v.camera.width, v.camera.height, [0.0; 3]);
-        let (w, h) = (v.camera.width as usize, v.camera.height as usize);
-        let target: Vec<[f32; 3]> = v
-            .image
-            .iter()
-            .zip(&v.object)
-            .map(|(c, m)| c.map(|x| x * m))
-            .collect();
-        let a = ImageView {
-            width: w,
-            height: h,
-            pixels: &r.rgb,
-        };
-        let b = ImageView {
-            width: w,
-            height: h,
-            pixels: &target,
-        };
-        let mask: Vec<bool> = (0..w * h)
-            .map(|i| v.object[i] >= 0.5 && r.alpha[i] >= 0.5 && v.gripper[i] < 0.5)
-            .collect();
-        let figures = [
-            psnr(&a, &b, None),
-            ssim(&a, &b, None),
-            psnr(&a, &b, Some(&mask)),
-            ssim(&a, &b, Some(&mask)),
-        ];
-        for (list, x) in [&mut p_all, &mut s_all, &mut p_mask, &mut s_mask]
-            .into_iter()
-            .zip(figures)
-        {
-            list.extend(x);
-        }
-        per_view.push(serde_json::json!({
-            "psnr": figures[0],
-            "ssim": figures[1],
-            "psnr_masked": figures[2],
-            "ssim_masked": figures[3],
-        }));
-        if let Some(net) = lpips {
-            l_all.push(net.distance(&r.rgb, &target, w, h, None)?);
-            if mask.iter().any(|&m| m) {
-                l_mask.push(net.distance(&r.rgb, &target, w, h, Some(&mask))?);
+    // psnr, ssim, psnr_masked, ssim_masked, lpips, lpips_masked.
+    let figures: Vec<[Option<f64>; 6]> = (0..count)
+        .into_par_iter()
+        .map(|i| {
+            let v = view(i)?;
+            let p = project(&g, &v.camera, &settings);
+            let r = rasterize(&p, v.camera.width, v.camera.height, [0.0; 3]);
+            rendered(i, &v, &r.rgb)?;
+            let (w, h) = (v.camera.width as usize, v.camera.height as usize);
+            let target: Vec<[f32; 3]> = v
+                .image
+                .iter()
+                .zip(&v.object)
+                .map(|(c, m)| c.map(|x| x * m))
+                .collect();
+            let a = ImageView {
+                width: w,
+                height: h,
+                pixels: &r.rgb,
+            };
+            let b = ImageView {
+                width: w,
+                height: h,
+                pixels: &target,
+            };
+            let mask: Vec<bool> = (0..w * h)
+                .map(|i| v.object[i] >= 0.5 && r.alpha[i] >= 0.5 && v.gripper[i] < 0.5)
+                .collect();
+            let (mut l_all, mut l_mask) = (None, None);
+            if let Some(net) = lpips {
+                l_all = Some(net.distance(&r.rgb, &target, w, h, None)?);
+                if mask.iter().any(|&m| m) {
+                    l_mask = Some(net.distance(&r.rgb, &target, w, h, Some(&mask))?);
+                }
             }
-        }
-    }
-    let mean = |v: &Vec<f64>| {
-        if v.is_empty() {
-            None
-        } else {
-            Some(v.iter().sum::<f64>() / v.len() as f64)
-        }
+            Ok([
+                psnr(&a, &b, None),
+                ssim(&a, &b, None),
+                psnr(&a, &b, Some(&mask)),
+                ssim(&a, &b, Some(&mask)),
+                l_all,
+                l_mask,
+            ])
+        })
+        .collect::<Vec<Result<_, SplatError>>>()
+        .into_iter()
+        .collect::<Result<_, _>>()?;
+    // Each view's own figures, so a user can see which views pull the mean down.
+    let per_view: Vec<serde_json::Value> = figures
+        .iter()
+        .map(|f| {
+            serde_json::json!({
+                "psnr": f[0],
+                "ssim": f[1],
+                "psnr_masked": f[2],
+                "ssim_masked": f[3],
+            })
+        })
+        .collect();
+    let mean = |k: usize| {
+        let known: Vec<f64> = figures.iter().filter_map(|f| f[k]).collect();
+        (!known.is_empty()).then(|| known.iter().sum::<f64>() / known.len() as f64)
     };
     let mut report = serde_json::json!({
-        "views": views.len(),
-        "psnr": mean(&p_all),
-        "ssim": mean(&s_all),
-        "psnr_masked": mean(&p_mask),
-        "ssim_masked": mean(&s_mask),
-        "lpips": mean(&l_all),
-        "lpips_masked": mean(&l_mask),
+        "views": count,
+        "psnr": mean(0),
+        "ssim": mean(1),
+        "psnr_masked": mean(2),
+        "ssim_masked": mean(3),
+        "lpips": mean(4),
+        "lpips_masked": mean(5),
         "per_view": per_view,
     });
     if lpips.is_none() {
@@ -1305,152 +1116,6 @@ pub fn evaluate(
             "LPIPS not computed: no network was given (--lpips FILE.onnx)".into();
     }
     Ok(report)
-}
-
-/// Training views from a calibrated photo set: a `cameras.json` with
-/// `frames` of `file_path`, `mask_path` (object mask), `fl_x`, `fl_y`, `cx`,
-/// `cy`, `w`, `h` (pixels) and `camera_to_world_opencv` (4x4). An optional
-/// `scale_mat` (NeuS convention: maps the unit sphere onto the object) is
-/// undone so the object sits in the unit sphere. No gripper, no depth.
-///
-/// `cx`, `cy` are OpenCV's: the first pixel's centre is (0, 0). The
-/// rasterizer puts it at (0.5, 0.5), so both move by half a pixel. DTU's
-/// file shows the convention: its 800x600 `cx` is (cx₁₆₀₀ + 0.5)/2 − 0.5 of
-/// the decomposed 1600x1200 projection matrix. Left as given, every view
-/// sat half a pixel off, in a different direction on the object for each
-/// camera.
-pub fn views_from_cameras_json(
-    path: &std::path::Path,
-    downscale: u32,
-) -> Result<Vec<View>, SplatError> {
-    use omniscan_core::image_io::{read_mask, read_rgb};
-    let text = std::fs::read_to_string(path).map_err(|e| SplatError::file(path, e.to_string()))?;
-    let d: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| SplatError::file(path, e.to_string()))?;
-    let dir = path.parent().unwrap_or(std::path::Path::new("."));
-    let to_matrix = |v: &serde_json::Value| -> Option<nalgebra::Matrix4<f64>> {
-        let rows: [[f64; 4]; 4] = serde_json::from_value(v.clone()).ok()?;
-        Some(nalgebra::Matrix4::from_fn(|r, c| rows[r][c]))
-    };
-    let normalise = match d.get("scale_mat") {
-        Some(m) => to_matrix(m)
-            .and_then(|m| m.try_inverse())
-            .ok_or_else(|| SplatError::file(path, "scale_mat is not an invertible 4x4 matrix"))?,
-        None => nalgebra::Matrix4::identity(),
-    };
-    let frames = d["frames"]
-        .as_array()
-        .ok_or_else(|| SplatError::file(path, "no `frames` array"))?;
-    let f = downscale_factor(downscale)?;
-    let mut views = Vec::new();
-    for (i, fr) in frames.iter().enumerate() {
-        let bad = |what: &str| SplatError::file(path, format!("frames[{i}]: {what}"));
-        let num = |k: &str| {
-            fr[k]
-                .as_f64()
-                .ok_or_else(|| bad(&format!("missing number `{k}`")))
-        };
-        let c2w = to_matrix(&fr["camera_to_world_opencv"])
-            .ok_or_else(|| bad("camera_to_world_opencv must be a 4x4 matrix"))?;
-        // Normalised world: x' = S⁻¹x; the camera keeps its rotation up to the uniform scale.
-        let c2w = normalise * c2w;
-        let s = c2w.fixed_view::<3, 1>(0, 0).norm();
-        // A zero or mirrored 3x3 block would re-orthonormalise below into a
-        // NaN or mirrored camera that trains without complaint.
-        if !(s.is_finite() && s > 0.0 && c2w.fixed_view::<3, 3>(0, 0).determinant() > 0.0) {
-            return Err(bad(
-                "camera_to_world_opencv's 3x3 block is not a rotation (zero, mirrored or not finite)",
-            ));
-        }
-        let mut rot = c2w.fixed_view::<3, 3>(0, 0).into_owned() / s;
-        // Re-orthonormalise.
-        let svd = rot.svd(true, true);
-        rot = svd.u.unwrap() * svd.v_t.unwrap();
-        let centre = c2w.fixed_view::<3, 1>(0, 3).into_owned();
-        let rt = rot.transpose();
-        let t = -(rt * centre);
-        let mut viewmat = [[0.0f32; 4]; 4];
-        for r in 0..3 {
-            for c in 0..3 {
-                viewmat[r][c] = rt[(r, c)] as f32;
-            }
-            viewmat[r][3] = t[r] as f32;
-        }
-        viewmat[3][3] = 1.0;
-        let positive = |k: &str| {
-            let v = num(k)?;
-            (v.is_finite() && v > 0.0).then_some(v).ok_or_else(|| {
-                bad(&format!(
-                    "`{k}` must be a positive focal length in pixels, got {v}"
-                ))
-            })
-        };
-        let (fl_x, fl_y) = (positive("fl_x")?, positive("fl_y")?);
-        let (cx, cy) = (num("cx")?, num("cy")?);
-        if !(cx.is_finite() && cy.is_finite()) {
-            return Err(bad("`cx`, `cy` must be finite"));
-        }
-        let image_path = dir.join(
-            fr["file_path"]
-                .as_str()
-                .ok_or_else(|| bad("missing file_path"))?,
-        );
-        let mask_path = dir.join(
-            fr["mask_path"]
-                .as_str()
-                .ok_or_else(|| bad("missing mask_path"))?,
-        );
-        let rgb = read_rgb(&image_path)?;
-        let mask = read_mask(&mask_path)?;
-        if (mask.width, mask.height) != (rgb.width, rgb.height) {
-            return Err(bad(&format!(
-                "the mask {} is {}x{} but the image {} is {}x{}",
-                mask_path.display(),
-                mask.width,
-                mask.height,
-                image_path.display(),
-                rgb.width,
-                rgb.height
-            )));
-        }
-        // The intrinsics are in pixels of the frame's `w` x `h`: an image
-        // resized without its cameras would train with a wrong focal length
-        // and principal point.
-        for (key, stated, actual) in [("w", &fr["w"], rgb.width), ("h", &fr["h"], rgb.height)] {
-            if !stated.is_null() && stated.as_f64() != Some(actual as f64) {
-                return Err(bad(&format!(
-                    "`{key}` is {stated} but the image {} is {}x{} (the intrinsics are in pixels of the stated size)",
-                    image_path.display(),
-                    rgb.width,
-                    rgb.height
-                )));
-            }
-        }
-        let (w, h) = (rgb.width / f, rgb.height / f);
-        let (image, object) = shrink_object(&rgb, &mask, f);
-        let camera = Camera {
-            viewmat,
-            fx: (fl_x / f as f64) as f32,
-            fy: (fl_y / f as f64) as f32,
-            cx: ((cx + 0.5) / f as f64) as f32,
-            cy: ((cy + 0.5) / f as f64) as f32,
-            width: w,
-            height: h,
-            near: 0.01,
-            far: 100.0,
-        };
-        views.push(View {
-            camera,
-            image,
-            object,
-            gripper: vec![0.0; (w * h) as usize],
-            depth: Vec::new(),
-        });
-    }
-    if views.is_empty() {
-        return Err(SplatError::file(path, "no frames"));
-    }
-    Ok(views)
 }
 
 #[cfg(test)]
@@ -1506,152 +1171,6 @@ mod tests {
             reference_adam(&mut expected[i], &mut m[i], &mut v[i], grads[i], 1e-3, 1);
         }
         assert_eq!(flat, expected);
-    }
-
-    #[test]
-    fn every_eighth_view_is_held_out() {
-        let (train, held_out) = split_held_out((0..17).collect(), 8);
-        assert_eq!(held_out, vec![7, 15]);
-        assert_eq!(train.len(), 15);
-        assert!(train.contains(&0) && !train.contains(&7));
-        let (train, held_out) = split_held_out((0..5).collect::<Vec<usize>>(), 0);
-        assert_eq!((train.len(), held_out.len()), (5, 0));
-        // The 3DGS and gsplat split.
-        let (train, held_out) = split_held_out_from((0..17).collect(), 8, Some(0));
-        assert_eq!(held_out, vec![0, 8, 16]);
-        assert_eq!(train.len(), 14);
-    }
-
-    #[test]
-    fn shrinking_keeps_the_background_out_of_the_object_edge() {
-        use omniscan_core::image_io::{Mask, RgbImage};
-        // A 4x2 photo shrunk by 2: the left block is half object (dark red)
-        // on a white table, the right block is all table.
-        let (object, table) = ([60u8, 10, 10], [250u8, 250, 250]);
-        let is_object = [true, false, false, false, true, false, false, false];
-        let rgb = RgbImage {
-            width: 4,
-            height: 2,
-            data: is_object
-                .iter()
-                .flat_map(|&o| if o { object } else { table })
-                .collect(),
-        };
-        let mask = Mask {
-            width: 4,
-            height: 2,
-            data: is_object.iter().map(|&o| if o { 255 } else { 0 }).collect(),
-        };
-        let (image, coverage) = shrink_object(&rgb, &mask, 2);
-        assert_eq!(coverage, vec![0.5, 0.0]);
-        // Colour × coverage is the object alone over black: half the red, no white.
-        let composite = image[0].map(|c| c * coverage[0]);
-        for (c, o) in composite.iter().zip(object) {
-            assert!((c - 0.5 * o as f32 / 255.0).abs() < 1e-6, "{composite:?}");
-        }
-        // A block without object keeps the photo's mean.
-        assert!(image[1].iter().all(|&c| (c - 250.0 / 255.0).abs() < 1e-6));
-    }
-
-    /// A photo set of one 8x4 grey image with a full mask (and an 8x2 mask
-    /// beside it), seen by an identity camera; `frame` is its JSON frame.
-    fn one_photo_set() -> (tempfile::TempDir, serde_json::Value) {
-        use omniscan_core::image_io::{Mask, RgbImage, write_mask, write_rgb};
-        let dir = tempfile::tempdir().unwrap();
-        write_rgb(
-            &dir.path().join("0.png"),
-            &RgbImage {
-                width: 8,
-                height: 4,
-                data: vec![128; 8 * 4 * 3],
-            },
-        )
-        .unwrap();
-        for (name, height) in [("0m.png", 4), ("short_mask.png", 2)] {
-            write_mask(
-                &dir.path().join(name),
-                &Mask {
-                    width: 8,
-                    height,
-                    data: vec![255; 8 * height as usize],
-                },
-            )
-            .unwrap();
-        }
-        let identity = [
-            [1., 0., 0., 0.],
-            [0., 1., 0., 0.],
-            [0., 0., 1., 0.],
-            [0., 0., 0., 1.],
-        ];
-        // OpenCV's centre of an 8x4 image is (3.5, 1.5).
-        let frame = serde_json::json!({
-            "file_path": "0.png", "mask_path": "0m.png", "fl_x": 10.0, "fl_y": 10.0,
-            "cx": 3.5, "cy": 1.5, "w": 8, "h": 4, "camera_to_world_opencv": identity,
-        });
-        (dir, frame)
-    }
-
-    #[test]
-    fn a_photo_sets_principal_point_is_opencvs() {
-        let (dir, frame) = one_photo_set();
-        let path = dir.path().join("cameras.json");
-        std::fs::write(&path, serde_json::json!({ "frames": [frame] }).to_string()).unwrap();
-        let full = &views_from_cameras_json(&path, 1).unwrap()[0].camera;
-        assert_eq!((full.cx, full.cy), (4.0, 2.0), "the image centre");
-        let half = &views_from_cameras_json(&path, 2).unwrap()[0].camera;
-        assert_eq!((half.cx, half.cy, half.width), (2.0, 1.0, 4));
-    }
-
-    #[test]
-    fn a_photo_sets_impossible_cameras_are_refused_by_name() {
-        let (dir, frame) = one_photo_set();
-        let mirrored = [
-            [-1., 0., 0., 0.],
-            [0., 1., 0., 0.],
-            [0., 0., 1., 0.],
-            [0., 0., 0., 1.],
-        ];
-        let cases: [(&str, serde_json::Value, &str); 5] = [
-            ("w", serde_json::json!(16), "`w` is 16 but the image"),
-            (
-                "fl_x",
-                serde_json::json!(-10.0),
-                "`fl_x` must be a positive focal length",
-            ),
-            (
-                "fl_y",
-                serde_json::json!(0.0),
-                "`fl_y` must be a positive focal length",
-            ),
-            (
-                "camera_to_world_opencv",
-                serde_json::json!(mirrored),
-                "is not a rotation",
-            ),
-            (
-                "mask_path",
-                serde_json::json!("short_mask.png"),
-                "is 8x2 but the image",
-            ),
-        ];
-        let path = dir.path().join("cameras.json");
-        for (key, value, message) in cases {
-            let mut bad = frame.clone();
-            bad[key] = value;
-            std::fs::write(
-                &path,
-                serde_json::json!({ "frames": [frame, bad] }).to_string(),
-            )
-            .unwrap();
-            let error = views_from_cameras_json(&path, 1).unwrap_err().to_string();
-            assert!(
-                error.contains("cameras.json")
-                    && error.contains("frames[1]")
-                    && error.contains(message),
-                "{key}: {error}"
-            );
-        }
     }
 
     /// Trains on the CPU without progress reports.
@@ -1724,6 +1243,56 @@ mod tests {
             })
             .collect();
         (views, start)
+    }
+
+    #[test]
+    fn evaluation_gives_the_same_figures_on_any_number_of_threads() {
+        let (views, model) = problem();
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let seen = std::sync::Mutex::new(Vec::new());
+            let report = pool
+                .install(|| {
+                    evaluate_views(
+                        &model,
+                        views.len(),
+                        |i| Ok(std::borrow::Cow::Borrowed(&views[i])),
+                        None,
+                        |i, _, rgb| {
+                            seen.lock().unwrap().push((i, rgb.to_vec()));
+                            Ok(())
+                        },
+                    )
+                })
+                .unwrap();
+            let mut seen = seen.into_inner().unwrap();
+            seen.sort_by_key(|(i, _)| *i);
+            (report, seen)
+        };
+        let (one, renders) = run(1);
+        assert_eq!(one["views"], 4);
+        assert!(one["psnr"].as_f64().unwrap().is_finite());
+        // Every view rendered once, as the model renders it.
+        assert_eq!(renders.len(), 4);
+        for (i, rgb) in &renders {
+            let (_, r) = crate::raster::render(
+                &model.gaussians::<f32>(),
+                &views[*i].camera,
+                &model.render_settings([0.0; 3]),
+            );
+            assert_eq!(*rgb, r.rgb, "view {i}");
+        }
+        for threads in [2, 5] {
+            assert_eq!(
+                run(threads),
+                (one.clone(), renders.clone()),
+                "{threads} threads"
+            );
+        }
+        assert_eq!(evaluate(&model, &views, None).unwrap(), one);
     }
 
     #[test]

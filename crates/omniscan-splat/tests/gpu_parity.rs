@@ -335,7 +335,8 @@ fn gpu_gradients_match_the_cpu_reference() {
 fn training_on_the_gpu_follows_the_cpu_reference() {
     use omniscan_splat::Splats;
     use omniscan_splat::backend::Renderer;
-    use omniscan_splat::train::{TrainConfig, View, train};
+    use omniscan_splat::train::{TrainConfig, train};
+    use omniscan_splat::views::View;
     // Targets: a random scene seen by four cameras around it.
     let truth = scene(400, None, 31);
     let views: Vec<View> = (0..4)

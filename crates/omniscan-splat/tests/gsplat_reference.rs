@@ -327,7 +327,7 @@ fn dtu_photo_set_loads_with_masks_and_a_consistent_visual_hull() {
     let dir = std::env::var_os("OMNISCAN_SHARED")
         .map(PathBuf::from)
         .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared"));
-    let views = omniscan_splat::train::views_from_cameras_json(
+    let views = omniscan_splat::views::views_from_cameras_json(
         &dir.join("data/dtu_scan37/cameras.json"),
         8,
     )

@@ -249,7 +249,7 @@ fn refine_by_images(
     right_to_left: &Pose,
 ) -> Result<(Pose, omniscan_splat::offset::OffsetRefinement)> {
     use omniscan_core::poses::{ViewSet, camera_views};
-    use omniscan_splat::train::{split_held_out, views_from_capture};
+    use omniscan_splat::views::{ViewSource, split_held_out};
     let model = omniscan_splat::ply::read_splats(&args.target)
         .context("--photometric renders TARGET, which must be a splat model")?;
     let capture = omniscan_core::Capture::load(capture_path)?;
@@ -257,14 +257,16 @@ fn refine_by_images(
         right_to_left: *right_to_left,
     };
     let arms: Vec<Arm> = camera_views(&capture, set).iter().map(|v| v.arm).collect();
-    let views = views_from_capture(&capture, set, args.downscale)
-        .with_context(|| format!("--photometric: the views of {}", capture_path.display()))?;
-    let (training, _) = split_held_out(arms.into_iter().zip(views).collect(), 8);
-    let right: Vec<_> = training
+    // Only the right arm's training views are fitted, so only they are read.
+    let (training, _) = split_held_out(arms.into_iter().enumerate().collect(), 8);
+    let indices: Vec<usize> = training
         .into_iter()
-        .filter(|(arm, _)| *arm == Arm::Right)
-        .map(|(_, v)| v)
+        .filter(|(_, arm)| *arm == Arm::Right)
+        .map(|(i, _)| i)
         .collect();
+    let right = ViewSource::from_capture(&capture, set, args.downscale)
+        .and_then(|source| source.load_each(&indices))
+        .with_context(|| format!("--photometric: the views of {}", capture_path.display()))?;
     if right.is_empty() {
         bail!(
             "--photometric: {} has no right-arm views to fit",

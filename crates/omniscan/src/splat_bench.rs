@@ -182,7 +182,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         // with its colours shifted): CPU forward, loss, backward; GPU the same
         // plus Adam, all on the device.
         let (_, truth) = omniscan_splat::raster::render(g, camera, &settings);
-        let view = omniscan_splat::train::View {
+        let view = omniscan_splat::views::View {
             camera: *camera,
             image: truth
                 .rgb

@@ -13,9 +13,10 @@ use omniscan_core::poses::ViewSet;
 use omniscan_splat::ply::write_splats;
 use omniscan_splat::raster::Appearance;
 use omniscan_splat::train::{
-    Checkpoints, Densification, Start, TrainConfig, initial_splats, splats_from_points,
-    split_held_out, split_held_out_from, train, train_resumable, views_from_capture,
+    Checkpoints, Densification, Start, TrainConfig, initial_splats, splats_from_points, train,
+    train_resumable,
 };
+use omniscan_splat::views::{ViewSource, split_held_out, split_held_out_from, views_from_capture};
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
 pub enum ArmSet {
@@ -242,7 +243,8 @@ pub fn train_capture(args: &TrainArgs) -> Result<serde_json::Value> {
             path.display()
         );
     }
-    let (all, view_set) = load_views(&args.capture, args.arm, right_to_left, args.downscale)?;
+    let (source, view_set) = view_source(&args.capture, args.arm, right_to_left, args.downscale)?;
+    let all = source.load_all()?;
     // The merge the views were brought together by, for --init-right and the report.
     let merged_by = match view_set {
         Some(ViewSet::Merged { right_to_left }) => Some(right_to_left),
@@ -486,13 +488,13 @@ fn load_lpips(
 
 /// The views of a capture (one arm, or both merged at the handover or by
 /// `right_to_left`) and the set they are, or of a calibrated photo set's
-/// `cameras.json` (no set: it has no arms).
-fn load_views(
+/// `cameras.json` (no set: it has no arms), not yet read.
+fn view_source(
     path: &std::path::Path,
     arm: ArmSet,
     right_to_left: Option<Pose>,
     downscale: u32,
-) -> Result<(Vec<omniscan_splat::train::View>, Option<ViewSet>)> {
+) -> Result<(ViewSource, Option<ViewSet>)> {
     if path.extension().is_some_and(|e| e == "json") && !path.ends_with("capture.json") {
         if right_to_left.is_some() {
             bail!(
@@ -500,12 +502,14 @@ fn load_views(
                 path.display()
             );
         }
-        let views = omniscan_splat::train::views_from_cameras_json(path, downscale)?;
-        return Ok((views, None));
+        return Ok((ViewSource::from_cameras_json(path, downscale)?, None));
     }
     let capture = Capture::load(path)?;
     let set = arm.view_set(&capture, right_to_left);
-    Ok((views_from_capture(&capture, set, downscale)?, Some(set)))
+    Ok((
+        ViewSource::from_capture(&capture, set, downscale)?,
+        Some(set),
+    ))
 }
 
 /// `omniscan eval`: PSNR/SSIM of a model against a capture's images, whole
@@ -519,26 +523,22 @@ pub fn eval(args: EvalArgs) -> Result<()> {
         (omniscan_splat::ply::read_splats(&args.model)?, None)
     };
     let right_to_left = args.merge.read(args.arm)?;
-    let (views, _) = load_views(&args.capture, args.arm, right_to_left, args.downscale)?;
-    // Each compared view keeps its index in the capture, for the per-view figures.
+    let (source, _) = view_source(&args.capture, args.arm, right_to_left, args.downscale)?;
+    // Each compared view keeps its index in the capture, for the per-view
+    // figures; only those views are read, each dropped once compared.
     let (training, held_out) = split_held_out_from(
-        views.into_iter().enumerate().collect(),
+        (0..source.len()).collect(),
         args.held_out_every,
         args.held_out_first,
     );
-    let (indices, views): (Vec<usize>, Vec<_>) = match args.held_out_every {
+    let indices = match args.held_out_every {
         0 => training,
         _ => held_out,
-    }
-    .into_iter()
-    .unzip();
-    if let Some(dir) = &args.renders {
-        let g = model.gaussians::<f32>();
-        let settings = model.render_settings([0.0; 3]);
-        for (i, v) in views.iter().enumerate() {
-            let (_, r) = omniscan_splat::raster::render(&g, &v.camera, &settings);
+    };
+    let byte = |x: f32| (x.clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
+    let write_pair =
+        |dir: &std::path::Path, i: usize, v: &omniscan_splat::views::View, rgb: &[[f32; 3]]| {
             let (w, h) = (v.camera.width as usize, v.camera.height as usize);
-            let byte = |x: f32| (x.clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
             let mut data = Vec::with_capacity(2 * w * h * 3);
             for y in 0..h {
                 for x in 0..w {
@@ -546,7 +546,7 @@ pub fn eval(args: EvalArgs) -> Result<()> {
                     data.extend(v.image[p].map(|c| byte(c * v.object[p])));
                 }
                 for x in 0..w {
-                    data.extend(r.rgb[y * w + x].map(byte));
+                    data.extend(rgb[y * w + x].map(byte));
                 }
             }
             omniscan_core::image_io::write_rgb(
@@ -556,11 +556,19 @@ pub fn eval(args: EvalArgs) -> Result<()> {
                     height: h as u32,
                     data,
                 },
-            )?;
-        }
-    }
+            )
+        };
     let lpips = load_lpips(&args.lpips, args.onnx_runtime.as_deref())?;
-    let mut report = omniscan_splat::train::evaluate(&model, &views, lpips.as_ref())?;
+    let mut report = omniscan_splat::train::evaluate_views(
+        &model,
+        indices.len(),
+        |i| source.load(indices[i]).map(std::borrow::Cow::Owned),
+        lpips.as_ref(),
+        |i, v, rgb| match &args.renders {
+            Some(dir) => Ok(write_pair(dir, i, v, rgb)?),
+            None => Ok(()),
+        },
+    )?;
     if let Some(step) = checkpoint_step {
         report["checkpoint_step"] = json!(step);
     }
