@@ -236,6 +236,7 @@ impl SimArgs {
 }
 
 fn main() {
+    quiet_headless_gpu_probe();
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
@@ -245,6 +246,22 @@ fn main() {
     if let Err(e) = run(Cli::parse()) {
         eprintln!("error: {e:#}");
         std::process::exit(1);
+    }
+}
+
+/// Mesa's Vulkan device-select layer looks for the GPU driving a Wayland
+/// display when the instance lists its devices; on a machine without a
+/// session (no `XDG_RUNTIME_DIR`: servers, CI, containers) libwayland then
+/// prints "error: XDG_RUNTIME_DIR is invalid or not set" twice, although
+/// nothing is wrong and the GPU, if any, is used. There the layer has no
+/// display to find, so it is turned off (`NODEVICE_SELECT`), unless the user
+/// picked a device through it (`MESA_VK_DEVICE_SELECT`). Set before any
+/// thread starts, as the environment must be.
+fn quiet_headless_gpu_probe() {
+    let unset = |key: &str| std::env::var_os(key).is_none();
+    if unset("XDG_RUNTIME_DIR") && unset("MESA_VK_DEVICE_SELECT") && unset("NODEVICE_SELECT") {
+        // SAFETY: called first thing in `main`, while this is the only thread.
+        unsafe { std::env::set_var("NODEVICE_SELECT", "1") };
     }
 }
 
