@@ -33,6 +33,16 @@ pub mod views;
 /// Helpers the unit tests share.
 #[cfg(test)]
 pub(crate) mod test_support {
+    /// `work` run on a pool of `threads` threads, for checking that a
+    /// result does not depend on how many there are.
+    pub fn on_threads<R: Send>(threads: usize, work: impl FnOnce() -> R + Send) -> R {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(work)
+    }
+
     /// A deterministic pseudo-random sequence in [0, 1), for test scenes.
     pub struct Lcg(pub u64);
     impl Lcg {

@@ -566,34 +566,22 @@ mod tests {
                 ..v.clone()
             })
             .collect();
-        let found = refine_offset(
-            &model,
-            &shifted,
-            &OffsetConfig {
-                steps: 150,
-                ..OffsetConfig::default()
-            },
-        )
-        .unwrap();
+        let refine = || {
+            refine_offset(
+                &model,
+                &shifted,
+                &OffsetConfig {
+                    steps: 150,
+                    ..OffsetConfig::default()
+                },
+            )
+            .unwrap()
+        };
+        let found = refine();
         assert!(found.accepted);
         // The same answer, to the bit, on other numbers of threads.
         for threads in [1, 3] {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
-            let again = pool
-                .install(|| {
-                    refine_offset(
-                        &model,
-                        &shifted,
-                        &OffsetConfig {
-                            steps: 150,
-                            ..OffsetConfig::default()
-                        },
-                    )
-                })
-                .unwrap();
+            let again = crate::test_support::on_threads(threads, refine);
             assert_eq!(again.offset, found.offset, "{threads} threads");
             assert_eq!(again.loss_after, found.loss_after, "{threads} threads");
         }

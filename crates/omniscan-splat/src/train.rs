@@ -1249,25 +1249,20 @@ mod tests {
     fn evaluation_gives_the_same_figures_on_any_number_of_threads() {
         let (views, model) = problem();
         let run = |threads: usize| {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
             let seen = std::sync::Mutex::new(Vec::new());
-            let report = pool
-                .install(|| {
-                    evaluate_views(
-                        &model,
-                        views.len(),
-                        |i| Ok(std::borrow::Cow::Borrowed(&views[i])),
-                        None,
-                        |i, _, rgb| {
-                            seen.lock().unwrap().push((i, rgb.to_vec()));
-                            Ok(())
-                        },
-                    )
-                })
-                .unwrap();
+            let report = crate::test_support::on_threads(threads, || {
+                evaluate_views(
+                    &model,
+                    views.len(),
+                    |i| Ok(std::borrow::Cow::Borrowed(&views[i])),
+                    None,
+                    |i, _, rgb| {
+                        seen.lock().unwrap().push((i, rgb.to_vec()));
+                        Ok(())
+                    },
+                )
+            })
+            .unwrap();
             let mut seen = seen.into_inner().unwrap();
             seen.sort_by_key(|(i, _)| *i);
             (report, seen)

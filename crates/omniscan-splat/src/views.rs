@@ -677,11 +677,9 @@ mod tests {
         // Reading all of them fails on frame 1, the first bad one, whichever
         // thread gets to which frame first.
         for threads in [1, 2, 5] {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
-            let error = pool.install(|| source.load_all()).unwrap_err().to_string();
+            let error = crate::test_support::on_threads(threads, || source.load_all())
+                .unwrap_err()
+                .to_string();
             assert!(
                 error.contains("frames[1]") && error.contains("is 8x2 but the image"),
                 "{threads} threads: {error}"
