@@ -71,32 +71,12 @@ pub fn run(args: RenderArgs) -> Result<()> {
             camera_views(&capture, ViewSet::Arm(args.arm))
                 .into_iter()
                 .map(|v| {
-                    let m = v.camera_to_object.inverse().to_homogeneous();
-                    let mut viewmat = [[0.0f32; 4]; 4];
-                    for (r, row) in viewmat.iter_mut().enumerate() {
-                        for (col, x) in row.iter_mut().enumerate() {
-                            *x = m[(r, col)] as f32;
-                        }
-                    }
                     let name = std::path::Path::new(&capture.file.frames[v.frame_index].file_path)
                         .file_stem()
                         .unwrap()
                         .to_string_lossy()
                         .to_string();
-                    (
-                        name,
-                        Camera {
-                            viewmat,
-                            fx: k.fx as f32,
-                            fy: k.fy as f32,
-                            cx: k.cx as f32,
-                            cy: k.cy as f32,
-                            width: k.width,
-                            height: k.height,
-                            near: 0.01,
-                            far: 100.0,
-                        },
-                    )
+                    (name, Camera::from_pose(&v.camera_to_object, &k))
                 })
                 .collect()
         }
