@@ -524,7 +524,7 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
     // MCMC densification (one refinement in 200 steps, at step 100: 1000
     // splats would grow to 1050, the cap stops them at 1030), the 3DGS split
     // (views 0, 8, 16 held out) and an antialiased model.
-    let out = omniscan(&[
+    let mcmc = omniscan_json(&[
         "train",
         capture.to_str().unwrap(),
         "--out",
@@ -546,12 +546,6 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
         "0",
         "--antialiased",
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let mcmc: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(mcmc["test_views"], 3, "{mcmc}");
     assert_eq!(mcmc["splats"], 1030, "{mcmc}");
     // An antialiased model says so in its file, for viewers and `eval`; so
@@ -565,7 +559,7 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
     // Re-create the long model for the evaluation below.
     let long = run("300");
     assert!(metric(&long, "psnr_masked") > 22.0);
-    let out = omniscan(&[
+    let eval = omniscan_json(&[
         "eval",
         model.to_str().unwrap(),
         capture.to_str().unwrap(),
@@ -573,18 +567,12 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
         "left",
         "--json",
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let eval: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     for key in ["psnr", "ssim", "psnr_masked", "ssim_masked"] {
         assert!(eval[key].as_f64().is_some(), "{key} missing: {eval}");
     }
     assert_eq!(eval["views"], 24);
     // Only the views training held out: the figures training reported.
-    let out = omniscan(&[
+    let held_out = omniscan_json(&[
         "eval",
         model.to_str().unwrap(),
         capture.to_str().unwrap(),
@@ -592,12 +580,6 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
         "8",
         "--json",
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let held_out: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(held_out["views"], 3);
     for key in ["psnr", "psnr_masked", "ssim_masked"] {
         assert_eq!(
@@ -1298,13 +1280,7 @@ fn mask_writes_masks_records_them_and_reports_iou_per_arm() {
     let tmp = tempfile::tempdir().unwrap();
     let capture = tmp.path().join("cap");
     tiny_capture(&capture);
-    let out = omniscan(&["mask", capture.to_str().unwrap(), "--eval", "--json"]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let report = omniscan_json(&["mask", capture.to_str().unwrap(), "--eval", "--json"]);
     for kind in ["object_miou", "gripper_miou"] {
         for arm in ["left", "right"] {
             let v = report["evaluation"][kind][arm].as_f64().unwrap();
@@ -1326,13 +1302,7 @@ fn mask_writes_masks_records_them_and_reports_iou_per_arm() {
         &omniscan(&["validate", capture.to_str().unwrap()]),
         "`omniscan mask` makes it again",
     );
-    let out = omniscan(&["mask", capture.to_str().unwrap(), "--json"]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let again: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let again = omniscan_json(&["mask", capture.to_str().unwrap(), "--json"]);
     assert_eq!(again["masking"]["computed"], 2, "{again}");
     assert_eq!(again["masking"]["resumed"], 10, "{again}");
     assert!(capture.join("masks/gripper/left_000.png").is_file());
