@@ -559,16 +559,28 @@ pub fn eval(args: EvalArgs) -> Result<()> {
             )
         };
     let lpips = load_lpips(&args.lpips, args.onnx_runtime.as_deref())?;
+    let bar = indicatif::ProgressBar::new(indices.len() as u64);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "evaluating [{bar:40}] {pos}/{len} views ({elapsed_precise}, eta {eta})",
+        )
+        .unwrap()
+        .progress_chars("=> "),
+    );
     let mut report = omniscan_splat::train::evaluate_views(
         &model,
         indices.len(),
         |i| source.load(indices[i]).map(std::borrow::Cow::Owned),
         lpips.as_ref(),
-        |i, v, rgb| match &args.renders {
-            Some(dir) => Ok(write_pair(dir, i, v, rgb)?),
-            None => Ok(()),
+        |i, v, rgb| {
+            bar.inc(1);
+            match &args.renders {
+                Some(dir) => Ok(write_pair(dir, i, v, rgb)?),
+                None => Ok(()),
+            }
         },
     )?;
+    bar.finish_and_clear();
     if let Some(step) = checkpoint_step {
         report["checkpoint_step"] = json!(step);
     }
