@@ -320,9 +320,23 @@ impl ViewSource {
     /// Reads the views at `indices` (each `< len()`), in that order, on all
     /// threads; the error is that of the first one that cannot be read.
     pub fn load_each(&self, indices: &[usize]) -> Result<Vec<View>, SplatError> {
+        self.load_each_reporting(indices, &|| {})
+    }
+
+    /// [`load_each`](Self::load_each), calling `read` after each view is read
+    /// (from any thread), for a progress bar.
+    pub fn load_each_reporting(
+        &self,
+        indices: &[usize],
+        read: &(dyn Fn() + Sync),
+    ) -> Result<Vec<View>, SplatError> {
         indices
             .par_iter()
-            .map(|&i| self.load(i))
+            .map(|&i| {
+                let view = self.load(i);
+                read();
+                view
+            })
             .collect::<Vec<_>>()
             .into_iter()
             .collect()

@@ -265,12 +265,13 @@ fn quiet_headless_gpu_probe() {
     }
 }
 
-fn progress_bar(total: usize, what: &str) -> ProgressBar {
+/// A bar over `total` `items` (frames, views), labelled `what`.
+fn progress_bar(total: usize, what: &str, items: &str) -> ProgressBar {
     let bar = ProgressBar::new(total as u64);
     bar.set_style(
-        ProgressStyle::with_template(
-            "{msg} [{bar:40}] {pos}/{len} frames, {elapsed_precise} (eta {eta})",
-        )
+        ProgressStyle::with_template(&format!(
+            "{{msg}} [{{bar:40}}] {{pos}}/{{len}} {items}, {{elapsed_precise}} (eta {{eta}})"
+        ))
         .unwrap()
         .progress_chars("=> "),
     );
@@ -280,7 +281,7 @@ fn progress_bar(total: usize, what: &str) -> ProgressBar {
 
 fn simulate(config: SimConfig, out: &Path) -> Result<omniscan_sim::SimSummary> {
     let sim = Simulation::new(config).context("cannot set up the simulation")?;
-    let bar = progress_bar(sim.frames.len(), "simulating");
+    let bar = progress_bar(sim.frames.len(), "simulating", "frames");
     let summary = sim
         .run(out, &|done, _| bar.set_position(done as u64))
         .with_context(|| format!("simulation into {} failed", out.display()))?;
@@ -329,7 +330,7 @@ fn run(cli: Cli) -> Result<()> {
                 None,
                 omniscan_mask::MaskSettings::default(),
             )?;
-            let bar = progress_bar(capture.file.frames.len(), "masking");
+            let bar = progress_bar(capture.file.frames.len(), "masking", "frames");
             let masking = omniscan_mask::mask_capture(&mut capture, &masker, &|done, _| {
                 bar.set_position(done as u64)
             })?;
@@ -550,7 +551,7 @@ fn run(cli: Cli) -> Result<()> {
             let setup = Instant::now();
             let sim = Simulation::new(config)?;
             let setup_s = setup.elapsed().as_secs_f64();
-            let bar = progress_bar(sim.frames.len(), "bench sim");
+            let bar = progress_bar(sim.frames.len(), "bench sim", "frames");
             let summary = sim.run(&dir, &|done, _| bar.set_position(done as u64))?;
             bar.finish_and_clear();
             let total = setup_s + summary.seconds;

@@ -349,7 +349,7 @@ pub fn run(args: MaskArgs) -> Result<()> {
     }
     capture.validate()?;
     let masker = masker_for(&capture, &args.settings, args.settings.settings()?)?;
-    let bar = crate::progress_bar(capture.file.frames.len(), "masking");
+    let bar = crate::progress_bar(capture.file.frames.len(), "masking", "frames");
     let summary = mask_capture(&mut capture, &masker, &|done, _| {
         bar.set_position(done as u64)
     })
@@ -474,7 +474,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         }
         let latency_s = start.elapsed().as_secs_f64() / latency_frames.len().max(1) as f64;
         // Throughput: frames in parallel, as `omniscan mask` runs them.
-        let bar = crate::progress_bar(frames.len(), "bench mask");
+        let bar = crate::progress_bar(frames.len(), "bench mask", "frames");
         let start = Instant::now();
         let results: Vec<(FrameScore, FrameTimings)> = frames
             .par_iter()

@@ -244,7 +244,13 @@ pub fn train_capture(args: &TrainArgs) -> Result<serde_json::Value> {
         );
     }
     let (source, view_set) = view_source(&args.capture, args.arm, right_to_left, args.downscale)?;
-    let all = source.load_all()?;
+    let all = {
+        let bar = crate::progress_bar(source.len(), "reading", "views");
+        let all =
+            source.load_each_reporting(&(0..source.len()).collect::<Vec<_>>(), &|| bar.inc(1))?;
+        bar.finish_and_clear();
+        all
+    };
     // The merge the views were brought together by, for --init-right and the report.
     let merged_by = match view_set {
         Some(ViewSet::Merged { right_to_left }) => Some(right_to_left),
@@ -559,14 +565,7 @@ pub fn eval(args: EvalArgs) -> Result<()> {
             )
         };
     let lpips = load_lpips(&args.lpips, args.onnx_runtime.as_deref())?;
-    let bar = indicatif::ProgressBar::new(indices.len() as u64);
-    bar.set_style(
-        indicatif::ProgressStyle::with_template(
-            "evaluating [{bar:40}] {pos}/{len} views ({elapsed_precise}, eta {eta})",
-        )
-        .unwrap()
-        .progress_chars("=> "),
-    );
+    let bar = crate::progress_bar(indices.len(), "evaluating", "views");
     let mut report = omniscan_splat::train::evaluate_views(
         &model,
         indices.len(),
