@@ -3,12 +3,12 @@
 //! against it, and shrunk for training; and the held-out split.
 //!
 //! A [`ViewSource`] knows every view's camera and files before it reads any
-//! image, so a caller can read all views at once on every thread
-//! ([`ViewSource::load_all`], for training) or only the views it needs, one
-//! at a time (evaluation compares them one by one and drops each: 200
-//! full-size views of a capture held 1.7 GB). Frames decode on all threads;
-//! one after another, PNG decoding and shrinking were most of `eval`'s time
-//! and the first seconds of every `train`.
+//! image, so a caller can read all views at once ([`ViewSource::load_all`],
+//! for training) or only the views it needs, when it needs them (evaluation
+//! reads the views it compares a few at a time and drops each once scored:
+//! holding all 200 full-size views of a capture took 1.7 GB). Frames decode
+//! on all threads; one after another, PNG decoding and shrinking were most of
+//! `eval`'s time and the first seconds of every `train`.
 
 use rayon::prelude::*;
 
@@ -27,6 +27,7 @@ pub struct View {
     /// Sensor depth along the optical axis, metres, 0 where unknown; empty if the capture has none.
     pub depth: Vec<f32>,
 }
+
 /// Splits views into training and held-out ones: every `every`-th view is
 /// held out, counting from one (views 7, 15, 23… for 8); 0 holds out
 /// nothing. (3DGS and gsplat hold out 0, 8, 16…, which
