@@ -143,6 +143,21 @@ pub fn pose_difference(a: &Pose, b: &Pose) -> (f64, f64) {
     (delta.rotation.angle(), delta.translation.vector.norm())
 }
 
+/// A direction drawn uniformly from the unit sphere (by rejection from the
+/// cube, away from the centre where normalising would lose precision).
+pub fn random_unit_vector(rng: &mut impl rand::Rng) -> Vector3<f64> {
+    loop {
+        let v = Vector3::new(
+            rng.random::<f64>() * 2.0 - 1.0,
+            rng.random::<f64>() * 2.0 - 1.0,
+            rng.random::<f64>() * 2.0 - 1.0,
+        );
+        if v.norm() > 0.1 && v.norm() <= 1.0 {
+            return v.normalize();
+        }
+    }
+}
+
 /// The rotation by `angle` radians about the line through `centre` along
 /// `axis`.
 pub fn rotation_about(
@@ -174,6 +189,24 @@ pub fn rotation_from_axes(
 mod tests {
     use super::*;
     use std::f64::consts::FRAC_PI_2;
+
+    #[test]
+    fn random_unit_vectors_are_unit_and_cover_the_sphere_evenly() {
+        use rand::SeedableRng;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let n = 20_000;
+        let (mut mean, mut upper) = (Vector3::zeros(), 0usize);
+        for _ in 0..n {
+            let v = random_unit_vector(&mut rng);
+            assert!((v.norm() - 1.0).abs() < 1e-12);
+            mean += v / n as f64;
+            // A uniform direction's z is uniform on [-1, 1] (Archimedes).
+            upper += usize::from(v.z > 0.5);
+        }
+        assert!(mean.norm() < 0.03, "{mean:?}");
+        let share = upper as f64 / n as f64;
+        assert!((share - 0.25).abs() < 0.015, "{share}");
+    }
 
     #[test]
     fn rows_round_trip() {

@@ -11,7 +11,7 @@
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
 
-use nalgebra::{Point3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Point3, Translation3, UnitQuaternion};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
@@ -335,18 +335,8 @@ impl Simulation {
         let object_to_left = left_grasp.object_to_gripper();
         let object_to_right_commanded = right_grasp.object_to_gripper();
         let mut rng = ChaCha8Rng::seed_from_u64(config.seed ^ 0x511b);
-        let random_unit = |rng: &mut ChaCha8Rng| loop {
-            let v = Vector3::new(
-                rng.random::<f64>() * 2.0 - 1.0,
-                rng.random::<f64>() * 2.0 - 1.0,
-                rng.random::<f64>() * 2.0 - 1.0,
-            );
-            if v.norm() > 0.1 && v.norm() <= 1.0 {
-                break v.normalize();
-            }
-        };
-        let slip_axis = random_unit(&mut rng);
-        let slip_direction = random_unit(&mut rng);
+        let slip_axis = omniscan_core::geometry::random_unit_vector(&mut rng);
+        let slip_direction = omniscan_core::geometry::random_unit_vector(&mut rng);
         let slip = Pose::from_parts(
             Translation3::from(slip_direction * config.slip_mm * 1e-3),
             UnitQuaternion::from_axis_angle(

@@ -419,19 +419,10 @@ pub struct BenchArgs {
 /// Moves every recorded gripper pose by `mm` and `deg` in seeded random
 /// directions, as an uncalibrated robot would report them.
 fn perturb_poses(capture: &mut Capture, mm: f64, deg: f64, seed: u64) {
-    use nalgebra::{Translation3, Unit, UnitQuaternion, Vector3};
-    use rand::{Rng, SeedableRng};
+    use nalgebra::{Translation3, Unit, UnitQuaternion};
+    use rand::SeedableRng;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-    let mut unit = move || loop {
-        let v = Vector3::new(
-            rng.random::<f64>() * 2.0 - 1.0,
-            rng.random::<f64>() * 2.0 - 1.0,
-            rng.random::<f64>() * 2.0 - 1.0,
-        );
-        if v.norm() > 0.1 && v.norm() <= 1.0 {
-            break v.normalize();
-        }
-    };
+    let mut unit = move || omniscan_core::geometry::random_unit_vector(&mut rng);
     let frames = capture
         .file
         .frames
