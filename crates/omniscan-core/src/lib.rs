@@ -13,6 +13,7 @@ pub mod nerfstudio;
 pub mod plan;
 pub mod ply;
 pub mod poses;
+pub mod tiles;
 
 pub use camera::Intrinsics;
 pub use capture::{Arm, Capture, CaptureFile, Frame};

@@ -209,32 +209,17 @@ pub fn render(
     let tile = TILE / ss * ss;
     let tiles_x = (sw + tile - 1) / tile;
     let tiles_y = (sh + tile - 1) / tile;
-    let tile_count = (tiles_x * tiles_y) as usize;
-    let partial: Vec<Vec<Vec<u32>>> = triangles
-        .par_chunks(RUN)
-        .enumerate()
-        .map(|(r, run)| {
-            let mut bins: Vec<Vec<u32>> = vec![Vec::new(); tile_count];
-            for (k, tri) in run.iter().enumerate() {
-                let [x0, y0, x1, y1] = tri.bbox;
-                for ty in (y0 / tile)..=(y1 / tile) {
-                    for tx in (x0 / tile)..=(x1 / tile) {
-                        bins[(ty * tiles_x + tx) as usize].push((r * RUN + k) as u32);
-                    }
-                }
-            }
-            bins
-        })
-        .collect();
-    let bins: Vec<Vec<u32>> = (0..tile_count)
-        .into_par_iter()
-        .map(|b| {
-            partial
-                .iter()
-                .flat_map(|run| run[b].iter().copied())
-                .collect()
-        })
-        .collect();
+    let bins = omniscan_core::tiles::bin_in_order(
+        triangles.len(),
+        (tiles_x * tiles_y) as usize,
+        RUN,
+        |i| {
+            let [x0, y0, x1, y1] = triangles[i].bbox;
+            ((y0 / tile)..=(y1 / tile)).flat_map(move |ty| {
+                ((x0 / tile)..=(x1 / tile)).map(move |tx| (ty * tiles_x + tx) as usize)
+            })
+        },
+    );
 
     // Lights in camera space.
     let r_wc = world_to_camera.rotation.cast::<f32>();

@@ -503,33 +503,16 @@ pub(crate) fn bin_tiles<F: Real>(p: &Projected<F>, width: u32, height: u32) -> T
             (packed, rect)
         })
         .unzip();
-    // Each run of Gaussians lists the tiles it covers on its own thread;
-    // each tile then gathers its lists, in run order, and sorts them. (One
-    // thread filling every tile's list took a second of a 3000-step DTU
-    // run while the others waited.)
+    // Tile lists in index order (`omniscan_core::tiles`), sorted below.
     let tile_count = (tx * ty) as usize;
     let run = covered
         .len()
         .div_ceil(4 * rayon::current_num_threads())
         .max(1);
-    let runs: Vec<Vec<Vec<u32>>> = covered
-        .par_chunks(run)
-        .enumerate()
-        .map(|(r, rects)| {
-            let mut lists: Vec<Vec<u32>> = vec![Vec::new(); tile_count];
-            for (k, rect) in rects.iter().enumerate() {
-                if let Some([x0, x1, y0, y1]) = *rect {
-                    let i = (r * run + k) as u32;
-                    for y in y0..y1 {
-                        for x in x0..x1 {
-                            lists[(y * tx + x) as usize].push(i);
-                        }
-                    }
-                }
-            }
-            lists
-        })
-        .collect();
+    let mut tiles = omniscan_core::tiles::bin_in_order(covered.len(), tile_count, run, |i| {
+        let [x0, x1, y0, y1] = covered[i].unwrap_or([0; 4]);
+        (y0..y1).flat_map(move |y| (x0..x1).map(move |x| (y * tx + x) as usize))
+    });
     // Depths as integers that sort the same way (IEEE order for finite
     // values), so each list sorts on plain integer keys.
     let key = |i: u32| {
@@ -541,17 +524,13 @@ pub(crate) fn bin_tiles<F: Real>(p: &Projected<F>, width: u32, height: u32) -> T
         };
         (ordered, i)
     };
-    let tiles: Vec<Vec<u32>> = (0..tile_count)
-        .into_par_iter()
-        .map(|t| {
-            let mut keyed: Vec<(u64, u32)> = runs
-                .iter()
-                .flat_map(|lists| lists[t].iter().map(|&i| key(i)))
-                .collect();
-            keyed.sort_unstable();
-            keyed.into_iter().map(|(_, i)| i).collect()
-        })
-        .collect();
+    tiles.par_iter_mut().for_each(|list| {
+        let mut keyed: Vec<(u64, u32)> = list.iter().map(|&i| key(i)).collect();
+        keyed.sort_unstable();
+        for (slot, (_, i)) in list.iter_mut().zip(keyed) {
+            *slot = i;
+        }
+    });
     TileBins { packed, tiles }
 }
 
