@@ -30,7 +30,7 @@ use crate::backend::Renderer;
 use crate::backward::backward_binned;
 use crate::gpu::training::{HostState, LossTarget, McmcStep, StepRates};
 use crate::metrics::{ImageView, psnr, weighted_ssim_and_gradient};
-use crate::raster::{Camera, bin_tiles, project, rasterize, rasterize_binned};
+use crate::raster::{Camera, bin_tiles, project, rasterize_binned};
 use crate::sh::{C0, coefficients};
 use crate::views::View;
 use crate::{SplatError, Splats};
@@ -1043,8 +1043,7 @@ pub fn evaluate_views<'a>(
         .into_par_iter()
         .map(|i| {
             let v = view(i)?;
-            let p = project(&g, &v.camera, &settings);
-            let r = rasterize(&p, v.camera.width, v.camera.height, [0.0; 3]);
+            let (_, r) = crate::raster::render(&g, &v.camera, &settings);
             rendered(i, &v, &r.rgb)?;
             let (w, h) = (v.camera.width as usize, v.camera.height as usize);
             let target: Vec<[f32; 3]> = v
