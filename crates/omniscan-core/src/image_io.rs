@@ -94,6 +94,30 @@ pub fn read_rgb(path: &Path) -> Result<RgbImage> {
     })
 }
 
+/// Reads an image as [`read_rgb`] does and, when it has an alpha channel,
+/// that channel as a mask (8-bit; values >= 128 count as in, as in
+/// [`read_mask`]): Blender's NeRF sets keep the object's mask there.
+pub fn read_rgb_and_alpha(path: &Path) -> Result<(RgbImage, Option<Mask>)> {
+    let img = open(path)?;
+    let alpha = img.color().has_alpha().then(|| {
+        let rgba = img.to_rgba8();
+        Mask {
+            width: rgba.width(),
+            height: rgba.height(),
+            data: rgba.pixels().map(|p| p[3]).collect(),
+        }
+    });
+    let rgb = img.into_rgb8();
+    Ok((
+        RgbImage {
+            width: rgb.width(),
+            height: rgb.height(),
+            data: rgb.into_raw(),
+        },
+        alpha,
+    ))
+}
+
 /// Reads an 8-bit single-channel mask; values >= 128 count as in.
 pub fn read_mask(path: &Path) -> Result<Mask> {
     let img = open(path)?;

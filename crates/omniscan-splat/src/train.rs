@@ -384,7 +384,7 @@ pub fn initial_splats(
         }
     }
     if points.len() < 10 {
-        return Err(SplatError::Invalid("the object masks agree on too little space to start from: check the masks and camera poses".into()));
+        return Err(SplatError::Invalid("the object masks agree on too little space to start from: check the masks and camera poses (the object is looked for around the origin, within 0.35 times the farthest camera's distance from it)".into()));
     }
     splats_from_points(&points, &colours, max_sh_degree)
 }

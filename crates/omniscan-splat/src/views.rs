@@ -126,6 +126,32 @@ fn shrink_object(
     (image, coverage)
 }
 
+/// A depth map in millimetres shrunk by `f` to metres: each block's nearest
+/// valid sample (0 where it has none).
+fn shrink_depth(depth: &omniscan_core::image_io::DepthMm, f: u32) -> Vec<f32> {
+    let (w, h, f) = (
+        (depth.width / f) as usize,
+        (depth.height / f) as usize,
+        f as usize,
+    );
+    let full_w = depth.width as usize;
+    let mut shrunk = vec![0.0f32; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let o = y * w + x;
+            for dy in 0..f {
+                for dx in 0..f {
+                    let z = depth.data[(y * f + dy) * full_w + x * f + dx] as f32 * 0.001;
+                    if z > 0.0 && (shrunk[o] == 0.0 || z < shrunk[o]) {
+                        shrunk[o] = z;
+                    }
+                }
+            }
+        }
+    }
+    shrunk
+}
+
 /// The views of a capture's view set or of a photo set, read on demand.
 #[derive(Debug, Clone)]
 pub struct ViewSource {
@@ -152,12 +178,65 @@ struct PhotoFrame {
     viewmat: [[f32; 4]; 4],
     fl_x: f64,
     fl_y: f64,
+    /// The principal point in the rasterizer's pixels, whose first centre is
+    /// (0.5, 0.5) as in gsplat and nerfstudio.
     cx: f64,
     cy: f64,
     image_path: std::path::PathBuf,
-    mask_path: std::path::PathBuf,
+    /// The object mask; without one, the image's alpha channel, or else the
+    /// whole image.
+    mask_path: Option<std::path::PathBuf>,
+    /// The least mask value that counts as object: 128 in a `cameras.json`,
+    /// 1 in nerfstudio's files, which count any value but 0 as set.
+    mask_threshold: u8,
+    /// A 16-bit depth PNG in millimetres, as `export-nerfstudio` writes.
+    depth_path: Option<std::path::PathBuf>,
     /// The frame's `w`, `h` (null when absent), checked against its image.
     stated_size: [serde_json::Value; 2],
+}
+
+/// Reads and parses a JSON file, naming it in any error.
+fn read_json(path: &std::path::Path) -> Result<serde_json::Value, SplatError> {
+    let text = std::fs::read_to_string(path).map_err(|e| SplatError::file(path, e.to_string()))?;
+    serde_json::from_str(&text).map_err(|e| SplatError::file(path, e.to_string()))
+}
+
+fn matrix4(v: &serde_json::Value) -> Option<nalgebra::Matrix4<f64>> {
+    let rows: [[f64; 4]; 4] = serde_json::from_value(v.clone()).ok()?;
+    Some(nalgebra::Matrix4::from_fn(|r, c| rows[r][c]))
+}
+
+/// The view matrix of an OpenCV camera-to-world pose whose 3x3 block is a
+/// rotation times a positive scale (re-orthonormalised, the scale dropped);
+/// `None` for a zero, mirrored or non-finite block, which would otherwise
+/// re-orthonormalise into a NaN or mirrored camera that trains without
+/// complaint.
+fn viewmat_of_camera_to_world(c2w: &nalgebra::Matrix4<f64>) -> Option<[[f32; 4]; 4]> {
+    let s = c2w.fixed_view::<3, 1>(0, 0).norm();
+    if !(s.is_finite() && s > 0.0 && c2w.fixed_view::<3, 3>(0, 0).determinant() > 0.0) {
+        return None;
+    }
+    let svd = (c2w.fixed_view::<3, 3>(0, 0).into_owned() / s).svd(true, true);
+    let rot = svd.u? * svd.v_t?;
+    let centre = c2w.fixed_view::<3, 1>(0, 3).into_owned();
+    let rt = rot.transpose();
+    let t = -(rt * centre);
+    let mut viewmat = [[0.0f32; 4]; 4];
+    for r in 0..3 {
+        for c in 0..3 {
+            viewmat[r][c] = rt[(r, c)] as f32;
+        }
+        viewmat[r][3] = t[r] as f32;
+    }
+    viewmat[3][3] = 1.0;
+    Some(viewmat)
+}
+
+/// A focal length that is a positive, finite number of pixels.
+fn positive_focal(key: &str, v: f64) -> Result<f64, String> {
+    (v.is_finite() && v > 0.0)
+        .then_some(v)
+        .ok_or_else(|| format!("`{key}` must be a positive focal length in pixels, got {v}"))
 }
 
 impl ViewSource {
@@ -204,90 +283,59 @@ impl ViewSource {
         path: &std::path::Path,
         downscale: u32,
     ) -> Result<ViewSource, SplatError> {
-        let text =
-            std::fs::read_to_string(path).map_err(|e| SplatError::file(path, e.to_string()))?;
-        let d: serde_json::Value =
-            serde_json::from_str(&text).map_err(|e| SplatError::file(path, e.to_string()))?;
-        let dir = path.parent().unwrap_or(std::path::Path::new("."));
-        let to_matrix = |v: &serde_json::Value| -> Option<nalgebra::Matrix4<f64>> {
-            let rows: [[f64; 4]; 4] = serde_json::from_value(v.clone()).ok()?;
-            Some(nalgebra::Matrix4::from_fn(|r, c| rows[r][c]))
+        let d = read_json(path)?;
+        let frames = cameras_json_frames(path, &d)?;
+        ViewSource::from_photo_frames(path, frames, downscale)
+    }
+
+    /// The views of a nerfstudio `transforms.json`, as `export-nerfstudio`,
+    /// nerfstudio's `ns-process-data` and Blender's NeRF sets write it:
+    /// `transform_matrix` (camera to world, OpenGL axes: y up, z backward)
+    /// per frame; intrinsics `fl_x`, `fl_y`, `cx`, `cy`, `w`, `h` per frame
+    /// or for the whole file (`camera_angle_x` instead of `fl_x`; `cx`, `cy`
+    /// default to the image centre, `w`, `h` to the image's size), in
+    /// nerfstudio's pixels (the first pixel's centre at (0.5, 0.5)); an
+    /// optional `mask_path`, read as the object mask (nerfstudio trains only
+    /// where it is set, and counts any value but 0 as set); without one, the image's alpha channel, or else the
+    /// whole image, is the object. An optional `depth_file_path` (16-bit,
+    /// millimetres) carves the initial splats as a capture's depth does.
+    ///
+    /// Only pinhole cameras: a file with lens distortion (`k1`…`k4`, `p1`,
+    /// `p2` not 0) or a fisheye or panoramic `camera_model` is refused, since
+    /// rendering it as a pinhole would misplace every pixel off the centre.
+    /// The object is looked for around the world origin, where
+    /// `export-nerfstudio` and Blender's sets put it.
+    pub fn from_transforms_json(
+        path: &std::path::Path,
+        downscale: u32,
+    ) -> Result<ViewSource, SplatError> {
+        let d = read_json(path)?;
+        let frames = transforms_json_frames(path, &d)?;
+        ViewSource::from_photo_frames(path, frames, downscale)
+    }
+
+    /// A photo set in either format, told apart by its frames:
+    /// [`from_transforms_json`](Self::from_transforms_json) where they have a
+    /// `transform_matrix`, else [`from_cameras_json`](Self::from_cameras_json).
+    pub fn from_photo_set(
+        path: &std::path::Path,
+        downscale: u32,
+    ) -> Result<ViewSource, SplatError> {
+        let d = read_json(path)?;
+        let frames = if d["frames"][0].get("transform_matrix").is_some() {
+            transforms_json_frames(path, &d)?
+        } else {
+            cameras_json_frames(path, &d)?
         };
-        let normalise = match d.get("scale_mat") {
-            Some(m) => to_matrix(m).and_then(|m| m.try_inverse()).ok_or_else(|| {
-                SplatError::file(path, "scale_mat is not an invertible 4x4 matrix")
-            })?,
-            None => nalgebra::Matrix4::identity(),
-        };
-        let json_frames = d["frames"]
-            .as_array()
-            .ok_or_else(|| SplatError::file(path, "no `frames` array"))?;
+        ViewSource::from_photo_frames(path, frames, downscale)
+    }
+
+    fn from_photo_frames(
+        path: &std::path::Path,
+        frames: Vec<PhotoFrame>,
+        downscale: u32,
+    ) -> Result<ViewSource, SplatError> {
         let f = downscale_factor(downscale)?;
-        let mut frames = Vec::with_capacity(json_frames.len());
-        for (i, fr) in json_frames.iter().enumerate() {
-            let bad = |what: &str| SplatError::file(path, format!("frames[{i}]: {what}"));
-            let num = |k: &str| {
-                fr[k]
-                    .as_f64()
-                    .ok_or_else(|| bad(&format!("missing number `{k}`")))
-            };
-            let c2w = to_matrix(&fr["camera_to_world_opencv"])
-                .ok_or_else(|| bad("camera_to_world_opencv must be a 4x4 matrix"))?;
-            // Normalised world: x' = S⁻¹x; the camera keeps its rotation up to the uniform scale.
-            let c2w = normalise * c2w;
-            let s = c2w.fixed_view::<3, 1>(0, 0).norm();
-            // A zero or mirrored 3x3 block would re-orthonormalise below into a
-            // NaN or mirrored camera that trains without complaint.
-            if !(s.is_finite() && s > 0.0 && c2w.fixed_view::<3, 3>(0, 0).determinant() > 0.0) {
-                return Err(bad(
-                    "camera_to_world_opencv's 3x3 block is not a rotation (zero, mirrored or not finite)",
-                ));
-            }
-            let mut rot = c2w.fixed_view::<3, 3>(0, 0).into_owned() / s;
-            // Re-orthonormalise.
-            let svd = rot.svd(true, true);
-            rot = svd.u.unwrap() * svd.v_t.unwrap();
-            let centre = c2w.fixed_view::<3, 1>(0, 3).into_owned();
-            let rt = rot.transpose();
-            let t = -(rt * centre);
-            let mut viewmat = [[0.0f32; 4]; 4];
-            for r in 0..3 {
-                for c in 0..3 {
-                    viewmat[r][c] = rt[(r, c)] as f32;
-                }
-                viewmat[r][3] = t[r] as f32;
-            }
-            viewmat[3][3] = 1.0;
-            let positive = |k: &str| {
-                let v = num(k)?;
-                (v.is_finite() && v > 0.0).then_some(v).ok_or_else(|| {
-                    bad(&format!(
-                        "`{k}` must be a positive focal length in pixels, got {v}"
-                    ))
-                })
-            };
-            let (fl_x, fl_y) = (positive("fl_x")?, positive("fl_y")?);
-            let (cx, cy) = (num("cx")?, num("cy")?);
-            if !(cx.is_finite() && cy.is_finite()) {
-                return Err(bad("`cx`, `cy` must be finite"));
-            }
-            let file = |key: &str| {
-                fr[key]
-                    .as_str()
-                    .map(|p| dir.join(p))
-                    .ok_or_else(|| bad(&format!("missing {key}")))
-            };
-            frames.push(PhotoFrame {
-                viewmat,
-                fl_x,
-                fl_y,
-                cx,
-                cy,
-                image_path: file("file_path")?,
-                mask_path: file("mask_path")?,
-                stated_size: [fr["w"].clone(), fr["h"].clone()],
-            });
-        }
         if frames.is_empty() {
             return Err(SplatError::file(path, "no frames"));
         }
@@ -357,6 +405,176 @@ impl ViewSource {
     }
 }
 
+/// The frames of a `cameras.json` ([`ViewSource::from_cameras_json`]).
+fn cameras_json_frames(
+    path: &std::path::Path,
+    d: &serde_json::Value,
+) -> Result<Vec<PhotoFrame>, SplatError> {
+    let dir = path.parent().unwrap_or(std::path::Path::new("."));
+    let normalise = match d.get("scale_mat") {
+        Some(m) => matrix4(m)
+            .and_then(|m| m.try_inverse())
+            .ok_or_else(|| SplatError::file(path, "scale_mat is not an invertible 4x4 matrix"))?,
+        None => nalgebra::Matrix4::identity(),
+    };
+    let json_frames = d["frames"]
+        .as_array()
+        .ok_or_else(|| SplatError::file(path, "no `frames` array"))?;
+    let mut frames = Vec::with_capacity(json_frames.len());
+    for (i, fr) in json_frames.iter().enumerate() {
+        let bad = |what: &str| SplatError::file(path, format!("frames[{i}]: {what}"));
+        let num = |k: &str| {
+            fr[k]
+                .as_f64()
+                .ok_or_else(|| bad(&format!("missing number `{k}`")))
+        };
+        let c2w = matrix4(&fr["camera_to_world_opencv"])
+            .ok_or_else(|| bad("camera_to_world_opencv must be a 4x4 matrix"))?;
+        // Normalised world: x' = S⁻¹x; the camera keeps its rotation up to the uniform scale.
+        let viewmat = viewmat_of_camera_to_world(&(normalise * c2w)).ok_or_else(|| {
+            bad("camera_to_world_opencv's 3x3 block is not a rotation (zero, mirrored or not finite)")
+        })?;
+        let positive = |k: &str| positive_focal(k, num(k)?).map_err(|e| bad(&e));
+        let (fl_x, fl_y) = (positive("fl_x")?, positive("fl_y")?);
+        let (cx, cy) = (num("cx")?, num("cy")?);
+        if !(cx.is_finite() && cy.is_finite()) {
+            return Err(bad("`cx`, `cy` must be finite"));
+        }
+        let file = |key: &str| {
+            fr[key]
+                .as_str()
+                .map(|p| dir.join(p))
+                .ok_or_else(|| bad(&format!("missing {key}")))
+        };
+        frames.push(PhotoFrame {
+            viewmat,
+            fl_x,
+            fl_y,
+            // OpenCV's first pixel centre is (0, 0), the rasterizer's (0.5, 0.5).
+            cx: cx + 0.5,
+            cy: cy + 0.5,
+            image_path: file("file_path")?,
+            mask_path: Some(file("mask_path")?),
+            mask_threshold: 128,
+            depth_path: None,
+            stated_size: [fr["w"].clone(), fr["h"].clone()],
+        });
+    }
+    Ok(frames)
+}
+
+/// The frames of a nerfstudio `transforms.json` ([`ViewSource::from_transforms_json`]).
+fn transforms_json_frames(
+    path: &std::path::Path,
+    d: &serde_json::Value,
+) -> Result<Vec<PhotoFrame>, SplatError> {
+    let dir = path.parent().unwrap_or(std::path::Path::new("."));
+    let json_frames = d["frames"]
+        .as_array()
+        .ok_or_else(|| SplatError::file(path, "no `frames` array"))?;
+    // nerfstudio's camera axes (y up, z backward) to OpenCV's (y down, z forward).
+    let opengl_to_opencv =
+        nalgebra::Matrix4::from_diagonal(&nalgebra::Vector4::new(1.0, -1.0, -1.0, 1.0));
+    let mut frames = Vec::with_capacity(json_frames.len());
+    for (i, fr) in json_frames.iter().enumerate() {
+        let bad = |what: &str| SplatError::file(path, format!("frames[{i}]: {what}"));
+        // A frame's own intrinsics override the file's, as in nerfstudio.
+        let value = |k: &str| fr.get(k).or_else(|| d.get(k)).filter(|v| !v.is_null());
+        let number = |k: &str| match value(k) {
+            None => Ok(None),
+            Some(v) => v
+                .as_f64()
+                .filter(|v| v.is_finite())
+                .map(Some)
+                .ok_or_else(|| bad(&format!("`{k}` must be a finite number, got {v}"))),
+        };
+        if let Some(model) = value("camera_model")
+            && !matches!(
+                model.as_str(),
+                Some("OPENCV" | "PINHOLE" | "SIMPLE_PINHOLE")
+            )
+        {
+            return Err(bad(&format!(
+                "camera_model {model} is not supported: omniscan renders pinhole cameras (OPENCV without distortion, PINHOLE, SIMPLE_PINHOLE)"
+            )));
+        }
+        for k in ["k1", "k2", "k3", "k4", "p1", "p2"] {
+            if let Some(v) = number(k)?
+                && v != 0.0
+            {
+                return Err(bad(&format!(
+                    "`{k}` is {v}: lens distortion is not modelled, so undistort the images first (and set it to 0)"
+                )));
+            }
+        }
+        let c2w = fr
+            .get("transform_matrix")
+            .and_then(matrix4)
+            .ok_or_else(|| bad("`transform_matrix` must be a 4x4 matrix"))?;
+        let viewmat = viewmat_of_camera_to_world(&(c2w * opengl_to_opencv)).ok_or_else(|| {
+            bad("transform_matrix's 3x3 block is not a rotation (zero, mirrored or not finite)")
+        })?;
+        let image_path = {
+            let name = fr
+                .get("file_path")
+                .and_then(|v| v.as_str())
+                .ok_or_else(|| bad("missing `file_path`"))?;
+            let p = dir.join(name);
+            // Blender's NeRF sets name their PNGs without the extension.
+            if p.extension().is_none() && !p.exists() {
+                p.with_extension("png")
+            } else {
+                p
+            }
+        };
+        let stated_size = [
+            value("w").cloned().unwrap_or_default(),
+            value("h").cloned().unwrap_or_default(),
+        ];
+        let (w, h) = match (number("w")?, number("h")?) {
+            (Some(w), Some(h)) => (w, h),
+            _ => {
+                let (w, h, _) = omniscan_core::image_io::probe(&image_path)?;
+                (w as f64, h as f64)
+            }
+        };
+        let focal = |k: &str, angle: &str, size: f64| -> Result<Option<f64>, SplatError> {
+            let v = match (number(k)?, number(angle)?) {
+                (Some(v), _) => v,
+                (None, Some(a)) => 0.5 * size / (0.5 * a).tan(),
+                (None, None) => return Ok(None),
+            };
+            positive_focal(k, v).map(Some).map_err(|e| bad(&e))
+        };
+        let fl_x = focal("fl_x", "camera_angle_x", w)?
+            .ok_or_else(|| bad("missing `fl_x` (or `camera_angle_x`)"))?;
+        let fl_y = focal("fl_y", "camera_angle_y", h)?.unwrap_or(fl_x);
+        let file = |key: &str| {
+            fr.get(key)
+                .filter(|v| !v.is_null())
+                .map(|v| {
+                    v.as_str()
+                        .map(|p| dir.join(p))
+                        .ok_or_else(|| bad(&format!("`{key}` must be a path")))
+                })
+                .transpose()
+        };
+        frames.push(PhotoFrame {
+            viewmat,
+            fl_x,
+            fl_y,
+            cx: number("cx")?.unwrap_or(w / 2.0),
+            cy: number("cy")?.unwrap_or(h / 2.0),
+            image_path,
+            mask_path: file("mask_path")?,
+            mask_threshold: 1,
+            depth_path: file("depth_file_path")?,
+            stated_size,
+        });
+    }
+    Ok(frames)
+}
+
 /// Training views from a capture: [`ViewSource::from_capture`], every view read.
 pub fn views_from_capture(
     capture: &omniscan_core::Capture,
@@ -406,9 +624,11 @@ fn load_capture_view(
     };
     let object = read_mask(&capture.resolve(&object_path))?;
     let gripper = read_mask(&capture.resolve(&gripper_path))?;
+    let depth_size = depth_map.as_ref().map(|d| (d.width, d.height));
     for (name, (mw, mh)) in [
         ("object mask", (object.width, object.height)),
         ("gripper mask", (gripper.width, gripper.height)),
+        ("depth map", depth_size.unwrap_or((rgb.width, rgb.height))),
     ] {
         if (mw, mh) != (rgb.width, rgb.height) {
             return Err(SplatError::Invalid(format!(
@@ -419,11 +639,7 @@ fn load_capture_view(
     }
     let full_w = rgb.width as usize;
     let (image, obj) = shrink_object(&rgb, &object, f);
-    // Depth: the nearest valid sample of each block.
-    let mut depth = match &depth_map {
-        Some(_) => vec![0.0f32; (w * h) as usize],
-        None => Vec::new(),
-    };
+    let depth = depth_map.map(|d| shrink_depth(&d, f)).unwrap_or_default();
     let mut grip = vec![0.0f32; (w * h) as usize];
     let area = (f * f) as f32;
     for y in 0..h as usize {
@@ -432,12 +648,6 @@ fn load_capture_view(
             for dy in 0..f as usize {
                 for dx in 0..f as usize {
                     let i = (y * f as usize + dy) * full_w + x * f as usize + dx;
-                    if let Some(d) = &depth_map {
-                        let z = d.data[i] as f32 * 0.001;
-                        if z > 0.0 && (depth[o] == 0.0 || z < depth[o]) {
-                            depth[o] = z;
-                        }
-                    }
                     grip[o] += (gripper.data[i] >= 128) as u8 as f32 / area;
                 }
             }
@@ -469,22 +679,41 @@ fn load_photo(
     frame: &PhotoFrame,
     f: u32,
 ) -> Result<View, SplatError> {
-    use omniscan_core::image_io::{read_mask, read_rgb};
+    use omniscan_core::image_io::{Mask, read_depth, read_mask, read_rgb, read_rgb_and_alpha};
     let bad = |what: &str| SplatError::file(cameras_json, format!("frames[{index}]: {what}"));
-    let (image_path, mask_path) = (&frame.image_path, &frame.mask_path);
-    let rgb = read_rgb(image_path)?;
-    let mask = read_mask(mask_path)?;
-    if (mask.width, mask.height) != (rgb.width, rgb.height) {
-        return Err(bad(&format!(
-            "the mask {} is {}x{} but the image {} is {}x{}",
-            mask_path.display(),
-            mask.width,
-            mask.height,
-            image_path.display(),
-            rgb.width,
-            rgb.height
-        )));
-    }
+    let image_path = &frame.image_path;
+    let (rgb, mask) = match &frame.mask_path {
+        Some(mask_path) => {
+            let rgb = read_rgb(image_path)?;
+            let mut mask = read_mask(mask_path)?;
+            if frame.mask_threshold != 128 {
+                for v in &mut mask.data {
+                    *v = if *v >= frame.mask_threshold { 255 } else { 0 };
+                }
+            }
+            if (mask.width, mask.height) != (rgb.width, rgb.height) {
+                return Err(bad(&format!(
+                    "the mask {} is {}x{} but the image {} is {}x{}",
+                    mask_path.display(),
+                    mask.width,
+                    mask.height,
+                    image_path.display(),
+                    rgb.width,
+                    rgb.height
+                )));
+            }
+            (rgb, mask)
+        }
+        None => {
+            let (rgb, alpha) = read_rgb_and_alpha(image_path)?;
+            let mask = alpha.unwrap_or_else(|| Mask {
+                width: rgb.width,
+                height: rgb.height,
+                data: vec![255; rgb.width as usize * rgb.height as usize],
+            });
+            (rgb, mask)
+        }
+    };
     // The intrinsics are in pixels of the frame's `w` x `h`: an image
     // resized without its cameras would train with a wrong focal length
     // and principal point.
@@ -502,13 +731,39 @@ fn load_photo(
         }
     }
     let (w, h) = (rgb.width / f, rgb.height / f);
+    if w == 0 || h == 0 {
+        return Err(bad(&format!(
+            "downscale {f} leaves nothing of the {}x{} image {}",
+            rgb.width,
+            rgb.height,
+            image_path.display()
+        )));
+    }
+    let depth = match &frame.depth_path {
+        Some(depth_path) => {
+            let depth = read_depth(depth_path)?;
+            if (depth.width, depth.height) != (rgb.width, rgb.height) {
+                return Err(bad(&format!(
+                    "the depth map {} is {}x{} but the image {} is {}x{}",
+                    depth_path.display(),
+                    depth.width,
+                    depth.height,
+                    image_path.display(),
+                    rgb.width,
+                    rgb.height
+                )));
+            }
+            shrink_depth(&depth, f)
+        }
+        None => Vec::new(),
+    };
     let (image, object) = shrink_object(&rgb, &mask, f);
     let camera = Camera {
         viewmat: frame.viewmat,
         fx: (frame.fl_x / f as f64) as f32,
         fy: (frame.fl_y / f as f64) as f32,
-        cx: ((frame.cx + 0.5) / f as f64) as f32,
-        cy: ((frame.cy + 0.5) / f as f64) as f32,
+        cx: (frame.cx / f as f64) as f32,
+        cy: (frame.cy / f as f64) as f32,
         width: w,
         height: h,
         near: 0.01,
@@ -519,7 +774,7 @@ fn load_photo(
         image,
         object,
         gripper: vec![0.0; (w * h) as usize],
-        depth: Vec::new(),
+        depth,
     })
 }
 
@@ -671,6 +926,170 @@ mod tests {
                 "{key}: {error}"
             );
         }
+    }
+
+    /// A nerfstudio set of one 8x4 RGBA photo, its alpha set on the left
+    /// half only, named without its extension as Blender's sets do, with a
+    /// 1 m depth map; the camera 5 units up the z axis looks down it at the
+    /// origin (OpenGL axes: it looks along its own −z).
+    fn one_nerfstudio_set() -> (tempfile::TempDir, serde_json::Value) {
+        use omniscan_core::image_io::{DepthMm, write_depth};
+        let dir = tempfile::tempdir().unwrap();
+        let mut rgba = image::RgbaImage::new(8, 4);
+        for (x, _, p) in rgba.enumerate_pixels_mut() {
+            *p = image::Rgba([200, 100, 50, if x < 4 { 255 } else { 0 }]);
+        }
+        rgba.save(dir.path().join("r_0.png")).unwrap();
+        let depth = DepthMm {
+            width: 8,
+            height: 4,
+            data: vec![1000; 32],
+        };
+        write_depth(&dir.path().join("d.png"), &depth).unwrap();
+        let file = serde_json::json!({
+            // fl_x = 0.5·8 / tan(atan(0.4)) = 10 px.
+            "camera_angle_x": 2.0 * 0.4f64.atan(),
+            "frames": [{
+                "file_path": "./r_0",
+                "depth_file_path": "d.png",
+                "transform_matrix": [
+                    [1., 0., 0., 0.],
+                    [0., 1., 0., 0.],
+                    [0., 0., 1., 5.],
+                    [0., 0., 0., 1.],
+                ],
+            }],
+        });
+        (dir, file)
+    }
+
+    #[test]
+    fn a_nerfstudio_set_reads_opengl_poses_angles_alpha_masks_and_depth() {
+        let (dir, file) = one_nerfstudio_set();
+        let path = dir.path().join("transforms.json");
+        std::fs::write(&path, file.to_string()).unwrap();
+        let source = ViewSource::from_photo_set(&path, 1).unwrap();
+        let view = source.load(0).unwrap();
+        let camera = &view.camera;
+        assert!((camera.fx - 10.0).abs() < 1e-4 && (camera.fy - 10.0).abs() < 1e-4);
+        // nerfstudio's principal point is already in the rasterizer's pixels.
+        assert_eq!((camera.cx, camera.cy, camera.width), (4.0, 2.0, 8));
+        // The origin lies 5 in front of the camera (OpenCV: +z forward), on its axis.
+        let origin_in_camera = [0, 1, 2].map(|r| camera.viewmat[r][3]);
+        assert_eq!(origin_in_camera, [0.0, 0.0, 5.0]);
+        // OpenCV's y is OpenGL's −y: a point up the world's y is up in the image.
+        assert_eq!(camera.viewmat[1][1], -1.0);
+        let expected_mask: Vec<f32> = (0..32).map(|i| ((i % 8) < 4) as u8 as f32).collect();
+        assert_eq!(view.object, expected_mask);
+        assert!(view.gripper.iter().all(|&g| g == 0.0));
+        assert_eq!(view.depth, vec![1.0; 32]);
+        assert!(view.image.iter().all(|c| c[0] == 200.0 / 255.0));
+        // Shrunk by 2 the intrinsics halve with it, as in a capture.
+        let half = ViewSource::from_transforms_json(&path, 2)
+            .unwrap()
+            .load(0)
+            .unwrap();
+        assert_eq!(
+            (half.camera.cx, half.camera.width, half.depth.len()),
+            (2.0, 4, 8)
+        );
+        assert!((half.camera.fx - 5.0).abs() < 1e-4);
+
+        // Without alpha, the whole image is the object.
+        let mut rgb = file.clone();
+        std::fs::copy(dir.path().join("r_0.png"), dir.path().join("copy.png")).unwrap();
+        image::open(dir.path().join("r_0.png"))
+            .unwrap()
+            .to_rgb8()
+            .save(dir.path().join("rgb.png"))
+            .unwrap();
+        rgb["frames"][0]["file_path"] = "rgb.png".into();
+        std::fs::write(&path, rgb.to_string()).unwrap();
+        let view = ViewSource::from_photo_set(&path, 1)
+            .unwrap()
+            .load(0)
+            .unwrap();
+        assert!(view.object.iter().all(|&o| o == 1.0));
+        // A mask file replaces both, and any value but 0 in it is object,
+        // as nerfstudio reads it.
+        let ones_on_the_right = omniscan_core::image_io::Mask {
+            width: 8,
+            height: 4,
+            data: (0..32).map(|i| ((i % 8) >= 4) as u8).collect(),
+        };
+        omniscan_core::image_io::write_mask(&dir.path().join("m.png"), &ones_on_the_right).unwrap();
+        let mut masked = file.clone();
+        masked["frames"][0]["mask_path"] = "m.png".into();
+        std::fs::write(&path, masked.to_string()).unwrap();
+        let view = ViewSource::from_photo_set(&path, 1)
+            .unwrap()
+            .load(0)
+            .unwrap();
+        let right: Vec<f32> = (0..32).map(|i| ((i % 8) >= 4) as u8 as f32).collect();
+        assert_eq!(view.object, right);
+        masked["frames"][0]["mask_path"] = "copy.png".into();
+        std::fs::write(&path, masked.to_string()).unwrap();
+        let error = ViewSource::from_photo_set(&path, 1)
+            .unwrap()
+            .load(0)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("copy.png") && error.contains("8-bit greyscale"),
+            "{error}"
+        );
+    }
+
+    #[test]
+    fn a_nerfstudio_sets_unsupported_cameras_are_refused_by_name() {
+        let (dir, file) = one_nerfstudio_set();
+        let frame = file["frames"][0].clone();
+        let path = dir.path().join("transforms.json");
+        let cases: [(&str, serde_json::Value, &str); 6] = [
+            (
+                "k1",
+                serde_json::json!(0.01),
+                "`k1` is 0.01: lens distortion",
+            ),
+            ("p2", serde_json::json!(-0.002), "`p2` is -0.002"),
+            (
+                "camera_model",
+                serde_json::json!("OPENCV_FISHEYE"),
+                "camera_model \"OPENCV_FISHEYE\" is not supported",
+            ),
+            ("fl_x", serde_json::json!(0.0), "`fl_x` must be a positive"),
+            (
+                "transform_matrix",
+                serde_json::json!([[1, 0, 0], [0, 1, 0]]),
+                "`transform_matrix` must be a 4x4 matrix",
+            ),
+            ("w", serde_json::json!(16), "`w` is 16 but the image"),
+        ];
+        for (key, value, message) in cases {
+            let mut bad = frame.clone();
+            bad[key] = value;
+            let mut set = file.clone();
+            set["frames"] = serde_json::json!([frame, bad]);
+            std::fs::write(&path, set.to_string()).unwrap();
+            let error = ViewSource::from_photo_set(&path, 1)
+                .and_then(|s| s.load_all())
+                .unwrap_err()
+                .to_string();
+            assert!(
+                error.contains("transforms.json")
+                    && error.contains("frames[1]")
+                    && error.contains(message),
+                "{key}: {error}"
+            );
+        }
+        // No focal length at all: neither `fl_x` nor `camera_angle_x`.
+        let mut set = file.clone();
+        set.as_object_mut().unwrap().remove("camera_angle_x");
+        std::fs::write(&path, set.to_string()).unwrap();
+        let error = ViewSource::from_photo_set(&path, 1)
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("frames[0]: missing `fl_x`"), "{error}");
     }
 
     #[test]

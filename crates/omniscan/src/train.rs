@@ -85,7 +85,7 @@ pub enum DensificationArg {
 
 #[derive(clap::Args)]
 pub struct TrainArgs {
-    /// The capture directory, or a calibrated photo set's cameras.json (file_path, mask_path, fl_x, fl_y, cx, cy in OpenCV's pixel convention, camera_to_world_opencv per frame; w, h, when given, must be the image's size, since the intrinsics are in its pixels).
+    /// The capture directory, or a calibrated photo set: a nerfstudio transforms.json (or its directory; pinhole cameras without distortion, the object near the origin, mask_path as the object mask, else the image's alpha, else the whole image), or a cameras.json (file_path, mask_path, fl_x, fl_y, cx, cy in OpenCV's pixel convention, camera_to_world_opencv per frame). A frame's w, h, when given, must be its image's size, since the intrinsics are in its pixels.
     pub capture: PathBuf,
     #[arg(long, value_enum, default_value = "left")]
     pub arm: ArmSet,
@@ -454,7 +454,7 @@ pub fn train_capture(args: &TrainArgs) -> Result<serde_json::Value> {
 pub struct EvalArgs {
     /// The splat model (3DGS PLY), or a training checkpoint (MODEL.ply.checkpoint.safetensors) to evaluate a run in progress.
     pub model: PathBuf,
-    /// The capture whose views to compare against (or a photo set's cameras.json).
+    /// The capture whose views to compare against (or a photo set: a transforms.json, its directory, or a cameras.json).
     pub capture: PathBuf,
     #[arg(long, value_enum, default_value = "left")]
     pub arm: ArmSet,
@@ -493,22 +493,36 @@ fn load_lpips(
 }
 
 /// The views of a capture (one arm, or both merged at the handover or by
-/// `right_to_left`) and the set they are, or of a calibrated photo set's
-/// `cameras.json` (no set: it has no arms), not yet read.
+/// `right_to_left`) and the set they are, or of a calibrated photo set
+/// (a `transforms.json`, a directory holding one and no capture, or a
+/// `cameras.json`; no set: it has no arms), not yet read.
 fn view_source(
     path: &std::path::Path,
     arm: ArmSet,
     right_to_left: Option<Pose>,
     downscale: u32,
 ) -> Result<(ViewSource, Option<ViewSet>)> {
-    if path.extension().is_some_and(|e| e == "json") && !path.ends_with("capture.json") {
+    let nerfstudio_dir = path.join("transforms.json");
+    let photo_set = if path.extension().is_some_and(|e| e == "json")
+        && !path.ends_with(omniscan_core::capture::CAPTURE_FILE)
+    {
+        Some(path)
+    } else if path.is_dir()
+        && !path.join(omniscan_core::capture::CAPTURE_FILE).exists()
+        && nerfstudio_dir.is_file()
+    {
+        Some(nerfstudio_dir.as_path())
+    } else {
+        None
+    };
+    if let Some(photo_set) = photo_set {
         if right_to_left.is_some() {
             bail!(
                 "--right-to-left: {} is a photo set, whose views have no arms to merge",
-                path.display()
+                photo_set.display()
             );
         }
-        return Ok((ViewSource::from_cameras_json(path, downscale)?, None));
+        return Ok((ViewSource::from_photo_set(photo_set, downscale)?, None));
     }
     let capture = Capture::load(path)?;
     let set = arm.view_set(&capture, right_to_left);

@@ -129,6 +129,69 @@ fn sim_validate_and_export_round_trip() {
 }
 
 #[test]
+fn a_nerfstudio_export_trains_and_scores_as_its_capture_does() {
+    // `export-nerfstudio` read back as a photo set: the same cameras, photos,
+    // object masks and depth as the capture's left arm, so a model scores the
+    // same against either (the masked figures leave out the gripper, which
+    // the export does not carry).
+    let tmp = tempfile::tempdir().unwrap();
+    let capture = tmp.path().join("cap");
+    tiny_capture(&capture);
+    let ns = tmp.path().join("ns");
+    let out = omniscan(&[
+        "export-nerfstudio",
+        capture.to_str().unwrap(),
+        "--arm",
+        "left",
+        "--out",
+        ns.to_str().unwrap(),
+    ]);
+    assert!(out.status.success());
+    let model = tmp.path().join("m.ply");
+    // The export's directory trains as the file would.
+    let trained = omniscan_json(&[
+        "train",
+        ns.to_str().unwrap(),
+        "--out",
+        model.to_str().unwrap(),
+        "--steps",
+        "60",
+        "--downscale",
+        "1",
+        "--initial-points",
+        "500",
+        "--sh-degree",
+        "0",
+        "--backend",
+        "cpu",
+        "--json",
+    ]);
+    assert_eq!(trained["train"]["views"], 6, "{trained}");
+    let eval = |source: &Path| {
+        omniscan_json(&[
+            "eval",
+            model.to_str().unwrap(),
+            source.to_str().unwrap(),
+            "--json",
+        ])
+    };
+    let from_capture = eval(&capture);
+    let from_export = eval(&ns.join("transforms.json"));
+    assert_eq!(from_export["views"], 6);
+    for key in ["psnr_masked", "ssim_masked"] {
+        let (a, b) = (
+            from_capture[key].as_f64().unwrap(),
+            from_export[key].as_f64().unwrap(),
+        );
+        assert!((a - b).abs() < 1e-4, "{key}: {a} against {b}");
+    }
+    assert!(
+        from_export["psnr_masked"].as_f64().unwrap() > 15.0,
+        "{from_export}"
+    );
+}
+
+#[test]
 fn plan_json_has_the_paper_trajectory() {
     let out = omniscan(&["plan", "--json"]);
     assert!(out.status.success());
