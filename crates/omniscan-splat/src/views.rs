@@ -169,6 +169,8 @@ enum Frames {
     Photos {
         cameras_json: std::path::PathBuf,
         frames: Vec<PhotoFrame>,
+        /// nerfstudio's `ply_file_path`: the set's own starting points.
+        initial_points: Option<std::path::PathBuf>,
     },
 }
 
@@ -285,7 +287,7 @@ impl ViewSource {
     ) -> Result<ViewSource, SplatError> {
         let d = read_json(path)?;
         let frames = cameras_json_frames(path, &d)?;
-        ViewSource::from_photo_frames(path, frames, downscale)
+        ViewSource::from_photo_frames(path, frames, None, downscale)
     }
 
     /// The views of a nerfstudio `transforms.json`, as `export-nerfstudio`,
@@ -298,7 +300,9 @@ impl ViewSource {
     /// optional `mask_path`, read as the object mask (nerfstudio trains only
     /// where it is set, and counts any value but 0 as set); without one, the image's alpha channel, or else the
     /// whole image, is the object. An optional `depth_file_path` (16-bit,
-    /// millimetres) carves the initial splats as a capture's depth does.
+    /// millimetres) carves the initial splats as a capture's depth does, and
+    /// an optional `ply_file_path` names the set's starting points
+    /// ([`initial_points`](Self::initial_points)).
     ///
     /// Only pinhole cameras: a file with lens distortion (`k1`…`k4`, `p1`,
     /// `p2` not 0) or a fisheye or panoramic `camera_model` is refused, since
@@ -311,7 +315,8 @@ impl ViewSource {
     ) -> Result<ViewSource, SplatError> {
         let d = read_json(path)?;
         let frames = transforms_json_frames(path, &d)?;
-        ViewSource::from_photo_frames(path, frames, downscale)
+        let points = transforms_json_points(path, &d)?;
+        ViewSource::from_photo_frames(path, frames, points, downscale)
     }
 
     /// A photo set in either format, told apart by its frames:
@@ -322,17 +327,21 @@ impl ViewSource {
         downscale: u32,
     ) -> Result<ViewSource, SplatError> {
         let d = read_json(path)?;
-        let frames = if d["frames"][0].get("transform_matrix").is_some() {
-            transforms_json_frames(path, &d)?
+        let (frames, points) = if d["frames"][0].get("transform_matrix").is_some() {
+            (
+                transforms_json_frames(path, &d)?,
+                transforms_json_points(path, &d)?,
+            )
         } else {
-            cameras_json_frames(path, &d)?
+            (cameras_json_frames(path, &d)?, None)
         };
-        ViewSource::from_photo_frames(path, frames, downscale)
+        ViewSource::from_photo_frames(path, frames, points, downscale)
     }
 
     fn from_photo_frames(
         path: &std::path::Path,
         frames: Vec<PhotoFrame>,
+        initial_points: Option<std::path::PathBuf>,
         downscale: u32,
     ) -> Result<ViewSource, SplatError> {
         let f = downscale_factor(downscale)?;
@@ -343,6 +352,7 @@ impl ViewSource {
             frames: Frames::Photos {
                 cameras_json: path.to_path_buf(),
                 frames,
+                initial_points,
             },
             downscale: f,
         })
@@ -358,6 +368,16 @@ impl ViewSource {
 
     pub fn is_empty(&self) -> bool {
         self.len() == 0
+    }
+
+    /// The point cloud a nerfstudio set names to start training from
+    /// (`ply_file_path`, as `ns-process-data` writes from COLMAP's points), in
+    /// the views' frame; `None` for other sources.
+    pub fn initial_points(&self) -> Option<&std::path::Path> {
+        match &self.frames {
+            Frames::Photos { initial_points, .. } => initial_points.as_deref(),
+            Frames::Capture { .. } => None,
+        }
     }
 
     /// Reads every view, on all threads; the error is that of the first
@@ -400,6 +420,7 @@ impl ViewSource {
             Frames::Photos {
                 cameras_json,
                 frames,
+                ..
             } => load_photo(cameras_json, index, &frames[index], self.downscale),
         }
     }
@@ -461,6 +482,21 @@ fn cameras_json_frames(
         });
     }
     Ok(frames)
+}
+
+/// A nerfstudio `transforms.json`'s `ply_file_path`, relative to its directory.
+fn transforms_json_points(
+    path: &std::path::Path,
+    d: &serde_json::Value,
+) -> Result<Option<std::path::PathBuf>, SplatError> {
+    let dir = path.parent().unwrap_or(std::path::Path::new("."));
+    match d.get("ply_file_path").filter(|v| !v.is_null()) {
+        None => Ok(None),
+        Some(v) => v
+            .as_str()
+            .map(|p| Some(dir.join(p)))
+            .ok_or_else(|| SplatError::file(path, "`ply_file_path` must be a path")),
+    }
 }
 
 /// The frames of a nerfstudio `transforms.json` ([`ViewSource::from_transforms_json`]).
@@ -969,6 +1005,7 @@ mod tests {
         let path = dir.path().join("transforms.json");
         std::fs::write(&path, file.to_string()).unwrap();
         let source = ViewSource::from_photo_set(&path, 1).unwrap();
+        assert_eq!(source.initial_points(), None);
         let view = source.load(0).unwrap();
         let camera = &view.camera;
         assert!((camera.fx - 10.0).abs() < 1e-4 && (camera.fy - 10.0).abs() < 1e-4);

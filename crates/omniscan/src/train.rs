@@ -136,7 +136,7 @@ pub struct TrainArgs {
     /// Initial splats from the visual hull of the masks (without --init).
     #[arg(long, default_value_t = 5000)]
     pub initial_points: usize,
-    /// Start from this point cloud instead (PLY, PCD or XYZ, with colours if it has them; a 3DGS PLY gives its centres), in the views' frame: the holding gripper's for a capture, metres.
+    /// Start from this point cloud instead (PLY, PCD or XYZ, with colours if it has them; a 3DGS PLY gives its centres), in the views' frame: the holding gripper's for a capture, metres. A nerfstudio set's ply_file_path is its default.
     #[arg(long)]
     pub init: Option<PathBuf>,
     /// With --arm both: also start from this point cloud (or splat model) in the right gripper's
@@ -306,13 +306,27 @@ pub fn train_capture(args: &TrainArgs) -> Result<serde_json::Value> {
         r => r,
     };
     eprintln!("training on {}", renderer.describe());
+    // A nerfstudio set's own points (`ply_file_path`) start it, as in
+    // nerfstudio, unless --init names others.
+    let init = args
+        .init
+        .clone()
+        .or_else(|| source.initial_points().map(PathBuf::from));
     let initial = || -> Result<_> {
-        if args.init.is_none() && args.init_right.is_none() {
+        if args.init.is_none()
+            && let Some(points) = &init
+        {
+            eprintln!(
+                "starting from the photo set's points {} (its ply_file_path)",
+                points.display()
+            );
+        }
+        if init.is_none() && args.init_right.is_none() {
             return initial_splats(&train_views, args.initial_points, args.sh_degree, args.seed)
                 .context("initialisation");
         }
         let (mut points, mut colours) = (Vec::new(), Vec::new());
-        let starts = [(&args.init, None), (&args.init_right, merged_by)];
+        let starts = [(&init, None), (&args.init_right, merged_by)];
         for (path, to_views) in starts {
             let Some(path) = path else { continue };
             let cloud = omniscan_register::cloud::read_cloud(path)?;
@@ -332,7 +346,7 @@ pub fn train_capture(args: &TrainArgs) -> Result<serde_json::Value> {
                 colours.extend(std::iter::repeat_n([0.5; 3], cloud.points.len()));
             }
         }
-        let named = [&args.init, &args.init_right]
+        let named = [&init, &args.init_right]
             .into_iter()
             .flatten()
             .map(|p| p.display().to_string())
@@ -436,6 +450,10 @@ pub fn train_capture(args: &TrainArgs) -> Result<serde_json::Value> {
             "sh_rest_lr": config.sh_rest_lr,
             "max_splats": config.max_splats,
             "seed": config.seed,
+            "init": match (&init, &args.init_right) {
+                (None, None) => json!("visual hull"),
+                (left, right) => json!([left, right].into_iter().flatten().collect::<Vec<_>>()),
+            },
             "right_to_left": merged_by.map(|pose| json!({
                 "transform": omniscan_core::geometry::pose_to_rows(&pose),
                 "from": match &args.merge.right_to_left {

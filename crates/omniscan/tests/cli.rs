@@ -189,6 +189,40 @@ fn a_nerfstudio_export_trains_and_scores_as_its_capture_does() {
         from_export["psnr_masked"].as_f64().unwrap() > 15.0,
         "{from_export}"
     );
+    assert_eq!(trained["settings"]["init"], "visual hull");
+
+    // A set that names its own points (nerfstudio's `ply_file_path`) starts
+    // from them, one splat each: here 64 points on a 2 cm sphere.
+    let mut cloud = String::from(
+        "ply\nformat ascii 1.0\nelement vertex 64\nproperty float x\nproperty float y\nproperty float z\nend_header\n",
+    );
+    for i in 0..64 {
+        let (a, b) = (i as f64 * 0.7, i as f64 * 1.3);
+        let p = [a.cos() * b.sin(), a.sin() * b.sin(), b.cos()].map(|v| 0.02 * v);
+        cloud.push_str(&format!("{} {} {}\n", p[0], p[1], p[2]));
+    }
+    std::fs::write(tmp.path().join("sparse_pc.ply"), cloud).unwrap();
+    let transforms_path = ns.join("transforms.json");
+    let mut transforms: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&transforms_path).unwrap()).unwrap();
+    transforms["ply_file_path"] = "../sparse_pc.ply".into();
+    std::fs::write(&transforms_path, transforms.to_string()).unwrap();
+    let restarted = omniscan_json(&[
+        "train",
+        transforms_path.to_str().unwrap(),
+        "--out",
+        tmp.path().join("m2.ply").to_str().unwrap(),
+        "--steps",
+        "1",
+        "--sh-degree",
+        "0",
+        "--backend",
+        "cpu",
+        "--json",
+    ]);
+    assert_eq!(restarted["splats"], 64, "{restarted}");
+    let init = restarted["settings"]["init"][0].as_str().unwrap();
+    assert!(init.ends_with("sparse_pc.ply"), "{restarted}");
 }
 
 #[test]
