@@ -1017,6 +1017,7 @@ pub fn evaluate(
 ) -> Result<serde_json::Value, SplatError> {
     evaluate_views(
         model,
+        &Renderer::Cpu,
         views.len(),
         |i| Ok(std::borrow::Cow::Borrowed(&views[i])),
         lpips,
@@ -1025,11 +1026,15 @@ pub fn evaluate(
 }
 
 /// [`evaluate`] over `count` views that `view(i)` gives (a view read from
-/// disk is dropped once compared), views on all threads; `rendered(i, view,
-/// rgb)` is handed each render. The figures do not depend on the threads:
-/// each view's are its own, and the means add them in view order.
+/// disk is dropped once compared), rendered by `renderer`: views on all
+/// threads on the CPU, one after another on a GPU, which serves one view at
+/// a time; `rendered(i, view, rgb)` is handed each render. The figures do
+/// not depend on the threads: each view's are its own, and the means add
+/// them in view order. A GPU's figures agree with the CPU reference's to
+/// its rendering tolerance (1e-4 relative), not to the digit.
 pub fn evaluate_views<'a>(
     model: &Splats,
+    renderer: &Renderer,
     count: usize,
     view: impl Fn(usize) -> Result<std::borrow::Cow<'a, View>, SplatError> + Sync,
     lpips: Option<&crate::lpips::Lpips>,
@@ -1039,51 +1044,56 @@ pub fn evaluate_views<'a>(
     let g = model.gaussians::<f32>();
     let settings = model.render_settings([0.0; 3]);
     // psnr, ssim, psnr_masked, ssim_masked, lpips, lpips_masked.
-    let figures: Vec<[Option<f64>; 6]> = (0..count)
-        .into_par_iter()
-        .map(|i| {
-            let v = view(i)?;
-            let (_, r) = crate::raster::render(&g, &v.camera, &settings);
-            rendered(i, &v, &r.rgb)?;
-            let (w, h) = (v.camera.width as usize, v.camera.height as usize);
-            let target: Vec<[f32; 3]> = v
-                .image
-                .iter()
-                .zip(&v.object)
-                .map(|(c, m)| c.map(|x| x * m))
-                .collect();
-            let a = ImageView {
-                width: w,
-                height: h,
-                pixels: &r.rgb,
-            };
-            let b = ImageView {
-                width: w,
-                height: h,
-                pixels: &target,
-            };
-            let mask: Vec<bool> = (0..w * h)
-                .map(|i| v.object[i] >= 0.5 && r.alpha[i] >= 0.5 && v.gripper[i] < 0.5)
-                .collect();
-            let (mut l_all, mut l_mask) = (None, None);
-            if let Some(net) = lpips {
-                l_all = Some(net.distance(&r.rgb, &target, w, h, None)?);
-                if mask.iter().any(|&m| m) {
-                    l_mask = Some(net.distance(&r.rgb, &target, w, h, Some(&mask))?);
-                }
+    let one = |i: usize| -> Result<[Option<f64>; 6], SplatError> {
+        let v = view(i)?;
+        let r = renderer.render(&g, &v.camera, &settings)?;
+        rendered(i, &v, &r.rgb)?;
+        let (w, h) = (v.camera.width as usize, v.camera.height as usize);
+        let target: Vec<[f32; 3]> = v
+            .image
+            .iter()
+            .zip(&v.object)
+            .map(|(c, m)| c.map(|x| x * m))
+            .collect();
+        let a = ImageView {
+            width: w,
+            height: h,
+            pixels: &r.rgb,
+        };
+        let b = ImageView {
+            width: w,
+            height: h,
+            pixels: &target,
+        };
+        let mask: Vec<bool> = (0..w * h)
+            .map(|i| v.object[i] >= 0.5 && r.alpha[i] >= 0.5 && v.gripper[i] < 0.5)
+            .collect();
+        let (mut l_all, mut l_mask) = (None, None);
+        if let Some(net) = lpips {
+            l_all = Some(net.distance(&r.rgb, &target, w, h, None)?);
+            if mask.iter().any(|&m| m) {
+                l_mask = Some(net.distance(&r.rgb, &target, w, h, Some(&mask))?);
             }
-            Ok([
-                psnr(&a, &b, None),
-                ssim(&a, &b, None),
-                psnr(&a, &b, Some(&mask)),
-                ssim(&a, &b, Some(&mask)),
-                l_all,
-                l_mask,
-            ])
-        })
-        .collect::<Vec<Result<_, SplatError>>>()
-        .into_iter()
-        .collect::<Result<_, _>>()?;
+        }
+        Ok([
+            psnr(&a, &b, None),
+            ssim(&a, &b, None),
+            psnr(&a, &b, Some(&mask)),
+            ssim(&a, &b, Some(&mask)),
+            l_all,
+            l_mask,
+        ])
+    };
+    let figures: Vec<[Option<f64>; 6]> = if renderer.is_gpu() {
+        (0..count).map(one).collect::<Result<_, _>>()?
+    } else {
+        (0..count)
+            .into_par_iter()
+            .map(one)
+            .collect::<Vec<Result<_, SplatError>>>()
+            .into_iter()
+            .collect::<Result<_, _>>()?
+    };
     // Each view's own figures, so a user can see which views pull the mean down.
     let per_view: Vec<serde_json::Value> = figures
         .iter()
@@ -1252,6 +1262,7 @@ mod tests {
             let report = crate::test_support::on_threads(threads, || {
                 evaluate_views(
                     &model,
+                    &Renderer::Cpu,
                     views.len(),
                     |i| Ok(std::borrow::Cow::Borrowed(&views[i])),
                     None,

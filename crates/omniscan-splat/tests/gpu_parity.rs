@@ -541,3 +541,70 @@ fn mcmc_noise_on_the_gpu_matches_the_cpu() {
         .fold(0f32, f32::max);
     assert!(last < 1e-6 * largest, "an opaque splat stays: {last}");
 }
+
+#[test]
+#[ignore = "needs a Vulkan device (lavapipe: apt-get install mesa-vulkan-drivers)"]
+fn evaluation_on_the_gpu_matches_the_cpu() {
+    use omniscan_splat::backend::Renderer;
+    use omniscan_splat::train::{evaluate_views, splats_from_points};
+    use omniscan_splat::views::View;
+    // A model of opaque splats at random points (SH degree 1), scored
+    // against its own renders from cameras 8 cm off: a fair fit, so no
+    // figure sits at its floor or its ceiling. Every view has a gripper band.
+    let mut r = Lcg(5);
+    let points: Vec<[f32; 3]> = (0..600)
+        .map(|_| {
+            [
+                3.0 * (r.next() - 0.5),
+                2.4 * (r.next() - 0.5),
+                1.5 + 2.0 * r.next(),
+            ]
+        })
+        .collect();
+    let colours: Vec<[f32; 3]> = (0..600).map(|_| [r.next(), r.next(), r.next()]).collect();
+    let mut model = splats_from_points(&points, &colours, 1).unwrap();
+    model.opacity_logits.fill(3.0);
+    let views: Vec<View> = (0..3)
+        .map(|i| {
+            let mut cam = camera(64, 48);
+            cam.viewmat[1][3] += 0.1 * i as f32;
+            let mut photographer = cam;
+            photographer.viewmat[0][3] += 0.08;
+            let (_, r) = render(
+                &model.gaussians::<f32>(),
+                &photographer,
+                &model.render_settings([0.0; 3]),
+            );
+            View {
+                camera: cam,
+                image: r.rgb.clone(),
+                object: r.alpha.iter().map(|&a| (a > 0.5) as u8 as f32).collect(),
+                gripper: (0..r.alpha.len())
+                    .map(|p| (p % 64 < 6) as u8 as f32)
+                    .collect(),
+                depth: Vec::new(),
+            }
+        })
+        .collect();
+    let score = |renderer: &Renderer| {
+        evaluate_views(
+            &model,
+            renderer,
+            views.len(),
+            |i| Ok(std::borrow::Cow::Borrowed(&views[i])),
+            None,
+            |_, _, _| Ok(()),
+        )
+        .unwrap()
+    };
+    let cpu = score(&Renderer::Cpu);
+    let gpu = score(&Renderer::Gpu(Box::new(renderer())));
+    assert_eq!(gpu["views"], 3);
+    for key in ["psnr", "ssim", "psnr_masked", "ssim_masked"] {
+        let (a, b) = (cpu[key].as_f64().unwrap(), gpu[key].as_f64().unwrap());
+        assert!(
+            (a - b).abs() <= 1e-4 * a.abs(),
+            "{key}: CPU {a} against GPU {b}"
+        );
+    }
+}

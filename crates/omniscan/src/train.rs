@@ -474,6 +474,9 @@ pub struct EvalArgs {
     pub model: PathBuf,
     /// The capture whose views to compare against (or a photo set: a transforms.json, its directory, or a cameras.json).
     pub capture: PathBuf,
+    /// Where to render: cpu (the reference, whose figures `train`'s report repeats to the digit), gpu (any Vulkan/Metal/DX12 device, software ones included) or auto (a real GPU when there is one); a GPU's figures agree with the CPU's to about 1e-4 relative.
+    #[arg(long, default_value = "cpu")]
+    pub backend: Backend,
     #[arg(long, value_enum, default_value = "left")]
     pub arm: ArmSet,
     #[command(flatten)]
@@ -598,8 +601,13 @@ pub fn eval(args: EvalArgs) -> Result<()> {
         };
     let lpips = load_lpips(&args.lpips, args.onnx_runtime.as_deref())?;
     let bar = crate::progress_bar(indices.len(), "evaluating", "views");
+    let renderer = Renderer::new(args.backend)?;
+    if renderer.is_gpu() {
+        eprintln!("rendering on {}", renderer.describe());
+    }
     let mut report = omniscan_splat::train::evaluate_views(
         &model,
+        &renderer,
         indices.len(),
         |i| source.load(indices[i]).map(std::borrow::Cow::Owned),
         lpips.as_ref(),
