@@ -411,6 +411,42 @@ impl ViewSource {
             .collect()
     }
 
+    /// View `index`'s camera (`index < len()`) and its image's file name
+    /// without the extension, without reading the image: a photo set's
+    /// frame that does not state its size has its image's header read.
+    pub fn camera(&self, index: usize) -> Result<(String, Camera<f32>), SplatError> {
+        let stem = |path: &std::path::Path| {
+            path.file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_else(|| format!("view_{index:03}"))
+        };
+        match &self.frames {
+            Frames::Capture { capture, views } => {
+                let view = &views[index];
+                let frame = &capture.file.frames[view.frame_index];
+                Ok((
+                    stem(std::path::Path::new(&frame.file_path)),
+                    capture_camera(capture, view, self.downscale),
+                ))
+            }
+            Frames::Photos { frames, .. } => {
+                let frame = &frames[index];
+                let stated = frame.stated_size.each_ref().map(|v| v.as_f64());
+                let (width, height) = match stated {
+                    [Some(w), Some(h)] => (w as u32, h as u32),
+                    _ => {
+                        let (w, h, _) = omniscan_core::image_io::probe(&frame.image_path)?;
+                        (w, h)
+                    }
+                };
+                Ok((
+                    stem(&frame.image_path),
+                    photo_camera(frame, width, height, self.downscale),
+                ))
+            }
+        }
+    }
+
     /// Reads view `index` (`index < len()`).
     pub fn load(&self, index: usize) -> Result<View, SplatError> {
         match &self.frames {
@@ -629,6 +665,24 @@ pub fn views_from_cameras_json(
     ViewSource::from_cameras_json(path, downscale)?.load_all()
 }
 
+/// A capture view's camera, its image shrunk by `f`.
+fn capture_camera(
+    capture: &omniscan_core::Capture,
+    v: &omniscan_core::poses::CameraView,
+    f: u32,
+) -> Camera<f32> {
+    let k = capture.intrinsics();
+    let shrunk = omniscan_core::Intrinsics {
+        width: k.width / f,
+        height: k.height / f,
+        fx: k.fx / f as f64,
+        fy: k.fy / f as f64,
+        cx: k.cx / f as f64,
+        cy: k.cy / f as f64,
+    };
+    Camera::from_pose(&v.camera_to_object, &shrunk)
+}
+
 fn load_capture_view(
     capture: &omniscan_core::Capture,
     v: &omniscan_core::poses::CameraView,
@@ -691,22 +745,28 @@ fn load_capture_view(
             grip[o] = if grip[o] > 0.0 { 1.0 } else { 0.0 };
         }
     }
-    let shrunk = omniscan_core::Intrinsics {
-        width: w,
-        height: h,
-        fx: k.fx / f as f64,
-        fy: k.fy / f as f64,
-        cx: k.cx / f as f64,
-        cy: k.cy / f as f64,
-    };
-    let camera = Camera::from_pose(&v.camera_to_object, &shrunk);
     Ok(View {
-        camera,
+        camera: capture_camera(capture, v, f),
         image,
         object: obj,
         gripper: grip,
         depth,
     })
+}
+
+/// A photo frame's camera, its `width` x `height` image shrunk by `f`.
+fn photo_camera(frame: &PhotoFrame, width: u32, height: u32, f: u32) -> Camera<f32> {
+    Camera {
+        viewmat: frame.viewmat,
+        fx: (frame.fl_x / f as f64) as f32,
+        fy: (frame.fl_y / f as f64) as f32,
+        cx: (frame.cx / f as f64) as f32,
+        cy: (frame.cy / f as f64) as f32,
+        width: width / f,
+        height: height / f,
+        near: 0.01,
+        far: 100.0,
+    }
 }
 
 fn load_photo(
@@ -794,19 +854,8 @@ fn load_photo(
         None => Vec::new(),
     };
     let (image, object) = shrink_object(&rgb, &mask, f);
-    let camera = Camera {
-        viewmat: frame.viewmat,
-        fx: (frame.fl_x / f as f64) as f32,
-        fy: (frame.fl_y / f as f64) as f32,
-        cx: (frame.cx / f as f64) as f32,
-        cy: (frame.cy / f as f64) as f32,
-        width: w,
-        height: h,
-        near: 0.01,
-        far: 100.0,
-    };
     Ok(View {
-        camera,
+        camera: photo_camera(frame, rgb.width, rgb.height, f),
         image,
         object,
         gripper: vec![0.0; (w * h) as usize],
@@ -911,6 +960,15 @@ mod tests {
         assert_eq!((full.cx, full.cy), (4.0, 2.0), "the image centre");
         let half = &views_from_cameras_json(&path, 2).unwrap()[0].camera;
         assert_eq!((half.cx, half.cy, half.width), (2.0, 1.0, 4));
+        let (name, alone) = ViewSource::from_cameras_json(&path, 2)
+            .unwrap()
+            .camera(0)
+            .unwrap();
+        assert_eq!(name, "0");
+        assert_eq!(
+            (alone.cx, alone.cy, alone.width, alone.height),
+            (2.0, 1.0, 4, 2)
+        );
     }
 
     #[test]
@@ -1008,6 +1066,13 @@ mod tests {
         assert_eq!(source.initial_points(), None);
         let view = source.load(0).unwrap();
         let camera = &view.camera;
+        // The camera alone, without the image (whose header gives its size).
+        let (name, alone) = source.camera(0).unwrap();
+        assert_eq!(
+            (name.as_str(), alone.viewmat, alone.fx),
+            ("r_0", camera.viewmat, camera.fx)
+        );
+        assert_eq!((alone.cx, alone.width, alone.height), (camera.cx, 8, 4));
         assert!((camera.fx - 10.0).abs() < 1e-4 && (camera.fy - 10.0).abs() < 1e-4);
         // nerfstudio's principal point is already in the rasterizer's pixels.
         assert_eq!((camera.cx, camera.cy, camera.width), (4.0, 2.0, 8));

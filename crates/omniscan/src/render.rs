@@ -1,14 +1,13 @@
 //! `omniscan render`: images of a splat model from orbiting cameras or from a
-//! capture's cameras, on the CPU reference rasterizer or the GPU (`--backend`).
+//! capture's or a photo set's cameras, on the CPU reference rasterizer or the
+//! GPU (`--backend`).
 
 use std::path::PathBuf;
 
 use anyhow::{Result, bail};
 use rayon::prelude::*;
 
-use omniscan_core::capture::{Arm, Capture};
 use omniscan_core::image_io::{RgbImage, write_rgb};
-use omniscan_core::poses::{ViewSet, camera_views};
 use omniscan_splat::backend::{Backend, Renderer};
 use omniscan_splat::ply::read_splats;
 use omniscan_splat::raster::Camera;
@@ -23,12 +22,14 @@ pub struct RenderArgs {
     /// Number of turntable views (ignored with --capture).
     #[arg(long, default_value_t = 8)]
     pub orbit: usize,
-    /// Render the cameras of this capture instead (in the model's frame: the holding gripper's).
+    /// Render the cameras of this capture instead (in the model's frame: the holding gripper's, the left one's for both arms), or of a photo set (a transforms.json, its directory, or a cameras.json), each at its image's size.
     #[arg(long)]
     pub capture: Option<PathBuf>,
     /// Which arm's cameras of the capture.
-    #[arg(long, default_value = "left")]
-    pub arm: Arm,
+    #[arg(long, value_enum, default_value = "left")]
+    pub arm: crate::train::ArmSet,
+    #[command(flatten)]
+    pub merge: crate::train::RightToLeftArg,
     /// Image width for turntable views, pixels.
     #[arg(long, default_value_t = 640)]
     pub width: u32,
@@ -66,19 +67,20 @@ pub fn run(args: RenderArgs) -> Result<()> {
     }
     let cameras: Vec<(String, Camera<f32>)> = match &args.capture {
         Some(c) => {
-            let capture = Capture::load(c)?;
-            let k = *capture.intrinsics();
-            camera_views(&capture, ViewSet::Arm(args.arm))
-                .into_iter()
-                .map(|v| {
-                    let name = std::path::Path::new(&capture.file.frames[v.frame_index].file_path)
-                        .file_stem()
-                        .unwrap()
-                        .to_string_lossy()
-                        .to_string();
-                    (name, Camera::from_pose(&v.camera_to_object, &k))
-                })
-                .collect()
+            let right_to_left = args.merge.read(args.arm)?;
+            let (source, _) = crate::train::view_source(c, args.arm, right_to_left, 1)?;
+            let mut cameras: Vec<(String, Camera<f32>)> = (0..source.len())
+                .map(|i| source.camera(i))
+                .collect::<Result<_, _>>()?;
+            // Images named alike in different folders would overwrite each other.
+            let names: std::collections::HashSet<&String> =
+                cameras.iter().map(|(name, _)| name).collect();
+            if names.len() < cameras.len() {
+                for (i, (name, _)) in cameras.iter_mut().enumerate() {
+                    *name = format!("{i:04}_{name}");
+                }
+            }
+            cameras
         }
         None => omniscan_splat::orbit::orbit_cameras(&model, args.orbit, args.width, args.height)
             .into_iter()

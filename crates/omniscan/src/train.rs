@@ -517,7 +517,7 @@ fn load_lpips(
 /// `right_to_left`) and the set they are, or of a calibrated photo set
 /// (a `transforms.json`, a directory holding one and no capture, or a
 /// `cameras.json`; no set: it has no arms), not yet read.
-fn view_source(
+pub(crate) fn view_source(
     path: &std::path::Path,
     arm: ArmSet,
     right_to_left: Option<Pose>,

@@ -190,6 +190,43 @@ fn a_nerfstudio_export_trains_and_scores_as_its_capture_does() {
         "{from_export}"
     );
     assert_eq!(trained["settings"]["init"], "visual hull");
+    // Rendered from the export's cameras, the model gives the capture's
+    // renders to the byte, named after the export's images.
+    let render = |source: &Path, out: &str| {
+        let out = tmp.path().join(out);
+        let run = omniscan(&[
+            "render",
+            model.to_str().unwrap(),
+            "--capture",
+            source.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--backend",
+            "cpu",
+        ]);
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        let mut files: Vec<_> = std::fs::read_dir(&out)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .collect();
+        files.sort();
+        files
+    };
+    let from_capture = render(&capture, "r_capture");
+    let from_export = render(&ns, "r_export");
+    assert_eq!(from_export.len(), 6);
+    assert!(from_export[0].ends_with("0000_left.png"), "{from_export:?}");
+    for (a, b) in from_capture.iter().zip(&from_export) {
+        assert_eq!(
+            std::fs::read(a).unwrap(),
+            std::fs::read(b).unwrap(),
+            "{a:?} against {b:?}"
+        );
+    }
 
     // A set that names its own points (nerfstudio's `ply_file_path`) starts
     // from them, one splat each: here 64 points on a 2 cm sphere.
