@@ -298,11 +298,11 @@ impl ViewSource {
     /// default to the image centre, `w`, `h` to the image's size), in
     /// nerfstudio's pixels (the first pixel's centre at (0.5, 0.5)); an
     /// optional `mask_path`, read as the object mask (nerfstudio trains only
-    /// where it is set, and counts any value but 0 as set); without one, the image's alpha channel, or else the
-    /// whole image, is the object. An optional `depth_file_path` (16-bit,
-    /// millimetres) carves the initial splats as a capture's depth does, and
-    /// an optional `ply_file_path` names the set's starting points
-    /// ([`initial_points`](Self::initial_points)).
+    /// where it is set, and counts any value but 0 as set); without one, the
+    /// image's alpha channel, or else the whole image, is the object. An
+    /// optional `depth_file_path` (16-bit, millimetres) carves the initial
+    /// splats as a capture's depth does, and an optional `ply_file_path`
+    /// names the set's starting points ([`initial_points`](Self::initial_points)).
     ///
     /// Only pinhole cameras: a file with lens distortion (`k1`…`k4`, `p1`,
     /// `p2` not 0) or a fisheye or panoramic `camera_model` is refused, since
@@ -412,8 +412,9 @@ impl ViewSource {
     }
 
     /// View `index`'s camera (`index < len()`) and its image's file name
-    /// without the extension, without reading the image: a photo set's
-    /// frame that does not state its size has its image's header read.
+    /// without the extension, without decoding the image: a photo set's
+    /// image has its header read for its size, which must be the frame's
+    /// stated one, as in [`load`](Self::load).
     pub fn camera(&self, index: usize) -> Result<(String, Camera<f32>), SplatError> {
         let stem = |path: &std::path::Path| {
             path.file_stem()
@@ -429,16 +430,14 @@ impl ViewSource {
                     capture_camera(capture, view, self.downscale),
                 ))
             }
-            Frames::Photos { frames, .. } => {
+            Frames::Photos {
+                cameras_json,
+                frames,
+                ..
+            } => {
                 let frame = &frames[index];
-                let stated = frame.stated_size.each_ref().map(|v| v.as_f64());
-                let (width, height) = match stated {
-                    [Some(w), Some(h)] => (w as u32, h as u32),
-                    _ => {
-                        let (w, h, _) = omniscan_core::image_io::probe(&frame.image_path)?;
-                        (w, h)
-                    }
-                };
+                let (width, height, _) = omniscan_core::image_io::probe(&frame.image_path)?;
+                check_stated_size(cameras_json, index, frame, width, height)?;
                 Ok((
                     stem(&frame.image_path),
                     photo_camera(frame, width, height, self.downscale),
@@ -769,6 +768,33 @@ fn photo_camera(frame: &PhotoFrame, width: u32, height: u32, f: u32) -> Camera<f
     }
 }
 
+/// The intrinsics are in pixels of the frame's `w` x `h`: an image resized
+/// without its cameras would train with a wrong focal length and principal
+/// point.
+fn check_stated_size(
+    cameras_json: &std::path::Path,
+    index: usize,
+    frame: &PhotoFrame,
+    width: u32,
+    height: u32,
+) -> Result<(), SplatError> {
+    for (key, stated, actual) in [
+        ("w", &frame.stated_size[0], width),
+        ("h", &frame.stated_size[1], height),
+    ] {
+        if !stated.is_null() && stated.as_f64() != Some(actual as f64) {
+            return Err(SplatError::file(
+                cameras_json,
+                format!(
+                    "frames[{index}]: `{key}` is {stated} but the image {} is {width}x{height} (the intrinsics are in pixels of the stated size)",
+                    frame.image_path.display(),
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
 fn load_photo(
     cameras_json: &std::path::Path,
     index: usize,
@@ -810,22 +836,7 @@ fn load_photo(
             (rgb, mask)
         }
     };
-    // The intrinsics are in pixels of the frame's `w` x `h`: an image
-    // resized without its cameras would train with a wrong focal length
-    // and principal point.
-    for (key, stated, actual) in [
-        ("w", &frame.stated_size[0], rgb.width),
-        ("h", &frame.stated_size[1], rgb.height),
-    ] {
-        if !stated.is_null() && stated.as_f64() != Some(actual as f64) {
-            return Err(bad(&format!(
-                "`{key}` is {stated} but the image {} is {}x{} (the intrinsics are in pixels of the stated size)",
-                image_path.display(),
-                rgb.width,
-                rgb.height
-            )));
-        }
-    }
+    check_stated_size(cameras_json, index, frame, rgb.width, rgb.height)?;
     let (w, h) = (rgb.width / f, rgb.height / f);
     if w == 0 || h == 0 {
         return Err(bad(&format!(
@@ -1184,6 +1195,16 @@ mod tests {
                 "{key}: {error}"
             );
         }
+        // A camera alone is refused as its view would be.
+        let error = ViewSource::from_photo_set(&path, 1)
+            .unwrap()
+            .camera(1)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("frames[1]: `w` is 16 but the image"),
+            "{error}"
+        );
         // No focal length at all: neither `fl_x` nor `camera_angle_x`.
         let mut set = file.clone();
         set.as_object_mut().unwrap().remove("camera_angle_x");
