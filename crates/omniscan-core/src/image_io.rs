@@ -5,8 +5,9 @@
 use std::io::BufWriter;
 use std::path::Path;
 
+pub use image::ColorType;
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
-use image::{ColorType, ExtendedColorType, ImageEncoder, ImageReader};
+use image::{ExtendedColorType, ImageEncoder, ImageReader};
 
 use crate::error::{CoreError, Result};
 

@@ -171,7 +171,36 @@ enum Frames {
         frames: Vec<PhotoFrame>,
         /// nerfstudio's `ply_file_path`: the set's own starting points.
         initial_points: Option<std::path::PathBuf>,
+        format: PhotoSetFormat,
     },
+}
+
+/// The file a photo set came in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+pub enum PhotoSetFormat {
+    /// nerfstudio's `transforms.json` ([`ViewSource::from_transforms_json`]).
+    #[serde(rename = "nerfstudio")]
+    Nerfstudio,
+    /// A `cameras.json` as DTU's ([`ViewSource::from_cameras_json`]).
+    #[serde(rename = "cameras.json")]
+    CamerasJson,
+}
+
+/// What [`ViewSource::check_photos`] found in a photo set.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct PhotoSetSummary {
+    pub format: PhotoSetFormat,
+    pub frames: usize,
+    /// The images' size in pixels, when they all share one.
+    pub width: Option<u32>,
+    pub height: Option<u32>,
+    /// Frames whose object mask is a file, their image's alpha channel, or
+    /// (with neither) the whole image.
+    pub mask_files: usize,
+    pub alpha_masks: usize,
+    pub whole_image_masks: usize,
+    pub depth_maps: usize,
+    pub initial_points: Option<std::path::PathBuf>,
 }
 
 /// One frame of a photo set, its camera parsed and checked, its files not yet read.
@@ -287,7 +316,8 @@ impl ViewSource {
     ) -> Result<ViewSource, SplatError> {
         let d = read_json(path)?;
         let frames = cameras_json_frames(path, &d)?;
-        ViewSource::from_photo_frames(path, frames, None, downscale)
+        let format = PhotoSetFormat::CamerasJson;
+        ViewSource::from_photo_frames(path, frames, None, format, downscale)
     }
 
     /// The views of a nerfstudio `transforms.json`, as `export-nerfstudio`,
@@ -316,7 +346,8 @@ impl ViewSource {
         let d = read_json(path)?;
         let frames = transforms_json_frames(path, &d)?;
         let points = transforms_json_points(path, &d)?;
-        ViewSource::from_photo_frames(path, frames, points, downscale)
+        let format = PhotoSetFormat::Nerfstudio;
+        ViewSource::from_photo_frames(path, frames, points, format, downscale)
     }
 
     /// A photo set in either format, told apart by its frames:
@@ -327,21 +358,27 @@ impl ViewSource {
         downscale: u32,
     ) -> Result<ViewSource, SplatError> {
         let d = read_json(path)?;
-        let (frames, points) = if d["frames"][0].get("transform_matrix").is_some() {
+        let (frames, points, format) = if d["frames"][0].get("transform_matrix").is_some() {
             (
                 transforms_json_frames(path, &d)?,
                 transforms_json_points(path, &d)?,
+                PhotoSetFormat::Nerfstudio,
             )
         } else {
-            (cameras_json_frames(path, &d)?, None)
+            (
+                cameras_json_frames(path, &d)?,
+                None,
+                PhotoSetFormat::CamerasJson,
+            )
         };
-        ViewSource::from_photo_frames(path, frames, points, downscale)
+        ViewSource::from_photo_frames(path, frames, points, format, downscale)
     }
 
     fn from_photo_frames(
         path: &std::path::Path,
         frames: Vec<PhotoFrame>,
         initial_points: Option<std::path::PathBuf>,
+        format: PhotoSetFormat,
         downscale: u32,
     ) -> Result<ViewSource, SplatError> {
         let f = downscale_factor(downscale)?;
@@ -353,6 +390,7 @@ impl ViewSource {
                 cameras_json: path.to_path_buf(),
                 frames,
                 initial_points,
+                format,
             },
             downscale: f,
         })
@@ -444,6 +482,97 @@ impl ViewSource {
                 ))
             }
         }
+    }
+
+    /// Checks a photo set's files without decoding them, on all threads:
+    /// every image's, mask's and depth map's header is read, their sizes
+    /// compared with each other and with the frame's stated `w`, `h`, and
+    /// their kinds (an 8-bit greyscale mask, a 16-bit depth map) checked.
+    /// The error is the first bad frame's, in order. `None` for a capture,
+    /// which `Capture::load` has already checked this way.
+    pub fn check_photos(&self) -> Result<Option<PhotoSetSummary>, SplatError> {
+        use omniscan_core::image_io::probe;
+        let Frames::Photos {
+            cameras_json,
+            frames,
+            initial_points,
+            format,
+        } = &self.frames
+        else {
+            return Ok(None);
+        };
+        #[derive(Clone, Copy, PartialEq)]
+        enum MaskKind {
+            File,
+            Alpha,
+            WholeImage,
+        }
+        let checked: Vec<(u32, u32, MaskKind)> = frames
+            .par_iter()
+            .enumerate()
+            .map(|(index, frame)| {
+                let bad = |what: String| {
+                    SplatError::file(cameras_json, format!("frames[{index}]: {what}"))
+                };
+                let (width, height, colour) = probe(&frame.image_path)?;
+                check_stated_size(cameras_json, index, frame, width, height)?;
+                let companions = [
+                    (
+                        &frame.mask_path,
+                        "mask",
+                        omniscan_core::image_io::ColorType::L8,
+                        "an 8-bit greyscale PNG",
+                    ),
+                    (
+                        &frame.depth_path,
+                        "depth map",
+                        omniscan_core::image_io::ColorType::L16,
+                        "a 16-bit greyscale PNG in millimetres",
+                    ),
+                ];
+                for (path, what, kind, described) in companions {
+                    let Some(path) = path else { continue };
+                    let (w, h, c) = probe(path)?;
+                    if c != kind {
+                        return Err(bad(format!(
+                            "the {what} {} must be {described}, found {c:?}",
+                            path.display()
+                        )));
+                    }
+                    if (w, h) != (width, height) {
+                        return Err(bad(format!(
+                            "the {what} {} is {w}x{h} but the image {} is {width}x{height}",
+                            path.display(),
+                            frame.image_path.display()
+                        )));
+                    }
+                }
+                let mask = match &frame.mask_path {
+                    Some(_) => MaskKind::File,
+                    None if colour.has_alpha() => MaskKind::Alpha,
+                    None => MaskKind::WholeImage,
+                };
+                Ok((width, height, mask))
+            })
+            .collect::<Vec<Result<_, SplatError>>>()
+            .into_iter()
+            .collect::<Result<_, _>>()?;
+        let shared = |size: fn(&(u32, u32, MaskKind)) -> u32| {
+            let first = size(&checked[0]);
+            checked.iter().all(|c| size(c) == first).then_some(first)
+        };
+        let count = |kind: MaskKind| checked.iter().filter(|c| c.2 == kind).count();
+        Ok(Some(PhotoSetSummary {
+            format: *format,
+            frames: frames.len(),
+            width: shared(|c| c.0),
+            height: shared(|c| c.1),
+            mask_files: count(MaskKind::File),
+            alpha_masks: count(MaskKind::Alpha),
+            whole_image_masks: count(MaskKind::WholeImage),
+            depth_maps: frames.iter().filter(|f| f.depth_path.is_some()).count(),
+            initial_points: initial_points.clone(),
+        }))
     }
 
     /// Reads view `index` (`index < len()`).
@@ -1151,6 +1280,93 @@ mod tests {
             error.contains("copy.png") && error.contains("8-bit greyscale"),
             "{error}"
         );
+    }
+
+    #[test]
+    fn a_photo_sets_files_are_checked_by_their_headers() {
+        let (dir, file) = one_nerfstudio_set();
+        let path = dir.path().join("transforms.json");
+        let mut set = file.clone();
+        let mut masked = file["frames"][0].clone();
+        omniscan_core::image_io::write_mask(
+            &dir.path().join("m.png"),
+            &omniscan_core::image_io::Mask {
+                width: 8,
+                height: 4,
+                data: vec![255; 32],
+            },
+        )
+        .unwrap();
+        masked["mask_path"] = "m.png".into();
+        set["frames"] = serde_json::json!([file["frames"][0], masked]);
+        set["ply_file_path"] = "points.ply".into();
+        std::fs::write(&path, set.to_string()).unwrap();
+        let summary = ViewSource::from_photo_set(&path, 1)
+            .unwrap()
+            .check_photos()
+            .unwrap()
+            .unwrap();
+        assert_eq!(
+            summary,
+            PhotoSetSummary {
+                format: PhotoSetFormat::Nerfstudio,
+                frames: 2,
+                width: Some(8),
+                height: Some(4),
+                mask_files: 1,
+                alpha_masks: 1,
+                whole_image_masks: 0,
+                depth_maps: 2,
+                initial_points: Some(dir.path().join("points.ply")),
+            }
+        );
+        // A mask of the wrong kind or size, a depth map of the wrong kind,
+        // each named with its frame.
+        let cases = [
+            (
+                "mask_path",
+                "r_0.png",
+                "the mask",
+                "must be an 8-bit greyscale PNG",
+            ),
+            (
+                "depth_file_path",
+                "m.png",
+                "the depth map",
+                "must be a 16-bit",
+            ),
+        ];
+        for (key, file_name, what, message) in cases {
+            let mut bad = masked.clone();
+            bad[key] = file_name.into();
+            set["frames"] = serde_json::json!([masked, bad]);
+            std::fs::write(&path, set.to_string()).unwrap();
+            let error = ViewSource::from_photo_set(&path, 1)
+                .unwrap()
+                .check_photos()
+                .unwrap_err()
+                .to_string();
+            assert!(
+                error.contains("frames[1]") && error.contains(what) && error.contains(message),
+                "{key}: {error}"
+            );
+        }
+        let short = omniscan_core::image_io::Mask {
+            width: 8,
+            height: 2,
+            data: vec![255; 16],
+        };
+        omniscan_core::image_io::write_mask(&dir.path().join("short.png"), &short).unwrap();
+        let mut bad = masked.clone();
+        bad["mask_path"] = "short.png".into();
+        set["frames"] = serde_json::json!([bad]);
+        std::fs::write(&path, set.to_string()).unwrap();
+        let error = ViewSource::from_photo_set(&path, 1)
+            .unwrap()
+            .check_photos()
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("short.png is 8x2 but the image"), "{error}");
     }
 
     #[test]

@@ -57,9 +57,9 @@ enum Command {
     },
     /// Simulate a bimanual in-hand scan and write a capture with ground truth.
     Sim(SimArgs),
-    /// Check a capture and print its summary.
+    /// Check a capture (or a photo set: every image's, mask's and depth map's header and size) and print its summary.
     Validate {
-        /// Capture directory (or its capture.json).
+        /// Capture directory (or its capture.json), or a photo set (a transforms.json, its directory, or a cameras.json).
         capture: PathBuf,
         /// Print the summary as JSON.
         #[arg(long)]
@@ -420,6 +420,37 @@ fn run(cli: Cli) -> Result<()> {
             }
         }
         Command::Validate { capture, json } => {
+            if let Some(photos) = train::photo_set_file(&capture) {
+                let source = omniscan_splat::views::ViewSource::from_photo_set(&photos, 1)?;
+                let summary = source
+                    .check_photos()?
+                    .with_context(|| format!("{} is not a photo set", photos.display()))?;
+                if json {
+                    println!("{}", serde_json::to_string(&summary)?);
+                } else {
+                    let size = match (summary.width, summary.height) {
+                        (Some(w), Some(h)) => format!("{w}x{h}"),
+                        _ => "sizes vary".into(),
+                    };
+                    println!(
+                        "{}: valid photo set ({}), {} frames, {size}, object masks: {} files / {} alpha / {} whole images, depth maps: {}, initial points: {}",
+                        photos.display(),
+                        serde_json::to_value(summary.format)?
+                            .as_str()
+                            .unwrap_or("?"),
+                        summary.frames,
+                        summary.mask_files,
+                        summary.alpha_masks,
+                        summary.whole_image_masks,
+                        summary.depth_maps,
+                        summary
+                            .initial_points
+                            .as_ref()
+                            .map_or("none".into(), |p| p.display().to_string()),
+                    );
+                }
+                return Ok(());
+            }
             let loaded = Capture::load(&capture)?;
             let summary = loaded.summary();
             if json {

@@ -513,6 +513,20 @@ fn load_lpips(
     })
 }
 
+/// The photo set `path` names: a JSON file other than a capture's, or a
+/// directory holding a `transforms.json` and no capture.
+pub(crate) fn photo_set_file(path: &std::path::Path) -> Option<PathBuf> {
+    let capture_file = omniscan_core::capture::CAPTURE_FILE;
+    let nerfstudio = path.join("transforms.json");
+    if path.extension().is_some_and(|e| e == "json") && !path.ends_with(capture_file) {
+        Some(path.to_path_buf())
+    } else if path.is_dir() && !path.join(capture_file).exists() && nerfstudio.is_file() {
+        Some(nerfstudio)
+    } else {
+        None
+    }
+}
+
 /// The views of a capture (one arm, or both merged at the handover or by
 /// `right_to_left`) and the set they are, or of a calibrated photo set
 /// (a `transforms.json`, a directory holding one and no capture, or a
@@ -523,20 +537,8 @@ pub(crate) fn view_source(
     right_to_left: Option<Pose>,
     downscale: u32,
 ) -> Result<(ViewSource, Option<ViewSet>)> {
-    let nerfstudio_dir = path.join("transforms.json");
-    let photo_set = if path.extension().is_some_and(|e| e == "json")
-        && !path.ends_with(omniscan_core::capture::CAPTURE_FILE)
-    {
-        Some(path)
-    } else if path.is_dir()
-        && !path.join(omniscan_core::capture::CAPTURE_FILE).exists()
-        && nerfstudio_dir.is_file()
-    {
-        Some(nerfstudio_dir.as_path())
-    } else {
-        None
-    };
-    if let Some(photo_set) = photo_set {
+    if let Some(photo_set) = photo_set_file(path) {
+        let photo_set = photo_set.as_path();
         if right_to_left.is_some() {
             bail!(
                 "--right-to-left: {} is a photo set, whose views have no arms to merge",

@@ -147,6 +147,17 @@ fn a_nerfstudio_export_trains_and_scores_as_its_capture_does() {
         ns.to_str().unwrap(),
     ]);
     assert!(out.status.success());
+    let checked = omniscan_json(&["validate", ns.to_str().unwrap(), "--json"]);
+    assert_eq!(
+        (
+            &checked["frames"],
+            &checked["mask_files"],
+            &checked["depth_maps"]
+        ),
+        (&6.into(), &6.into(), &6.into()),
+        "{checked}"
+    );
+    assert_eq!(checked["format"], "nerfstudio");
     let model = tmp.path().join("m.ply");
     // The export's directory trains as the file would.
     let trained = omniscan_json(&[
