@@ -314,10 +314,7 @@ impl ViewSource {
         path: &std::path::Path,
         downscale: u32,
     ) -> Result<ViewSource, SplatError> {
-        let d = read_json(path)?;
-        let frames = cameras_json_frames(path, &d)?;
-        let format = PhotoSetFormat::CamerasJson;
-        ViewSource::from_photo_frames(path, frames, None, format, downscale)
+        ViewSource::photo_set(path, downscale, Some(PhotoSetFormat::CamerasJson))
     }
 
     /// The views of a nerfstudio `transforms.json`, as `export-nerfstudio`,
@@ -343,11 +340,7 @@ impl ViewSource {
         path: &std::path::Path,
         downscale: u32,
     ) -> Result<ViewSource, SplatError> {
-        let d = read_json(path)?;
-        let frames = transforms_json_frames(path, &d)?;
-        let points = transforms_json_points(path, &d)?;
-        let format = PhotoSetFormat::Nerfstudio;
-        ViewSource::from_photo_frames(path, frames, points, format, downscale)
+        ViewSource::photo_set(path, downscale, Some(PhotoSetFormat::Nerfstudio))
     }
 
     /// A photo set in either format, told apart by its frames:
@@ -357,30 +350,28 @@ impl ViewSource {
         path: &std::path::Path,
         downscale: u32,
     ) -> Result<ViewSource, SplatError> {
-        let d = read_json(path)?;
-        let (frames, points, format) = if d["frames"][0].get("transform_matrix").is_some() {
-            (
-                transforms_json_frames(path, &d)?,
-                transforms_json_points(path, &d)?,
-                PhotoSetFormat::Nerfstudio,
-            )
-        } else {
-            (
-                cameras_json_frames(path, &d)?,
-                None,
-                PhotoSetFormat::CamerasJson,
-            )
-        };
-        ViewSource::from_photo_frames(path, frames, points, format, downscale)
+        ViewSource::photo_set(path, downscale, None)
     }
 
-    fn from_photo_frames(
+    /// A photo set in `format`, or in the one its frames show.
+    fn photo_set(
         path: &std::path::Path,
-        frames: Vec<PhotoFrame>,
-        initial_points: Option<std::path::PathBuf>,
-        format: PhotoSetFormat,
         downscale: u32,
+        format: Option<PhotoSetFormat>,
     ) -> Result<ViewSource, SplatError> {
+        let d = read_json(path)?;
+        let format = format.unwrap_or(if d["frames"][0].get("transform_matrix").is_some() {
+            PhotoSetFormat::Nerfstudio
+        } else {
+            PhotoSetFormat::CamerasJson
+        });
+        let (frames, initial_points) = match format {
+            PhotoSetFormat::Nerfstudio => (
+                transforms_json_frames(path, &d)?,
+                transforms_json_points(path, &d)?,
+            ),
+            PhotoSetFormat::CamerasJson => (cameras_json_frames(path, &d)?, None),
+        };
         let f = downscale_factor(downscale)?;
         if frames.is_empty() {
             return Err(SplatError::file(path, "no frames"));
@@ -1282,6 +1273,20 @@ mod tests {
         );
     }
 
+    /// Writes `set` to `path`, reads it as a photo set and does `then` with
+    /// it; the error either gave.
+    fn error_of<T: std::fmt::Debug>(
+        path: &std::path::Path,
+        set: &serde_json::Value,
+        then: impl Fn(ViewSource) -> Result<T, SplatError>,
+    ) -> String {
+        std::fs::write(path, set.to_string()).unwrap();
+        ViewSource::from_photo_set(path, 1)
+            .and_then(then)
+            .unwrap_err()
+            .to_string()
+    }
+
     #[test]
     fn a_photo_sets_files_are_checked_by_their_headers() {
         let (dir, file) = one_nerfstudio_set();
@@ -1340,12 +1345,7 @@ mod tests {
             let mut bad = masked.clone();
             bad[key] = file_name.into();
             set["frames"] = serde_json::json!([masked, bad]);
-            std::fs::write(&path, set.to_string()).unwrap();
-            let error = ViewSource::from_photo_set(&path, 1)
-                .unwrap()
-                .check_photos()
-                .unwrap_err()
-                .to_string();
+            let error = error_of(&path, &set, |s| s.check_photos());
             assert!(
                 error.contains("frames[1]") && error.contains(what) && error.contains(message),
                 "{key}: {error}"
@@ -1360,12 +1360,7 @@ mod tests {
         let mut bad = masked.clone();
         bad["mask_path"] = "short.png".into();
         set["frames"] = serde_json::json!([bad]);
-        std::fs::write(&path, set.to_string()).unwrap();
-        let error = ViewSource::from_photo_set(&path, 1)
-            .unwrap()
-            .check_photos()
-            .unwrap_err()
-            .to_string();
+        let error = error_of(&path, &set, |s| s.check_photos());
         assert!(error.contains("short.png is 8x2 but the image"), "{error}");
     }
 
@@ -1399,11 +1394,7 @@ mod tests {
             bad[key] = value;
             let mut set = file.clone();
             set["frames"] = serde_json::json!([frame, bad]);
-            std::fs::write(&path, set.to_string()).unwrap();
-            let error = ViewSource::from_photo_set(&path, 1)
-                .and_then(|s| s.load_all())
-                .unwrap_err()
-                .to_string();
+            let error = error_of(&path, &set, |s| s.load_all());
             assert!(
                 error.contains("transforms.json")
                     && error.contains("frames[1]")
@@ -1424,10 +1415,7 @@ mod tests {
         // No focal length at all: neither `fl_x` nor `camera_angle_x`.
         let mut set = file.clone();
         set.as_object_mut().unwrap().remove("camera_angle_x");
-        std::fs::write(&path, set.to_string()).unwrap();
-        let error = ViewSource::from_photo_set(&path, 1)
-            .unwrap_err()
-            .to_string();
+        let error = error_of(&path, &set, |_| Ok(()));
         assert!(error.contains("frames[0]: missing `fl_x`"), "{error}");
     }
 
