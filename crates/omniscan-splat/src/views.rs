@@ -176,14 +176,37 @@ enum Frames {
 }
 
 /// The file a photo set came in.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum PhotoSetFormat {
     /// nerfstudio's `transforms.json` ([`ViewSource::from_transforms_json`]).
-    #[serde(rename = "nerfstudio")]
     Nerfstudio,
     /// A `cameras.json` as DTU's ([`ViewSource::from_cameras_json`]).
-    #[serde(rename = "cameras.json")]
     CamerasJson,
+}
+
+impl PhotoSetFormat {
+    /// "nerfstudio" or "cameras.json", as reports write it.
+    pub fn name(self) -> &'static str {
+        match self {
+            PhotoSetFormat::Nerfstudio => "nerfstudio",
+            PhotoSetFormat::CamerasJson => "cameras.json",
+        }
+    }
+
+    /// The least mask value that counts as object: 128 in a `cameras.json`,
+    /// 1 in nerfstudio's files, which count any value but 0 as set.
+    fn mask_threshold(self) -> u8 {
+        match self {
+            PhotoSetFormat::Nerfstudio => 1,
+            PhotoSetFormat::CamerasJson => 128,
+        }
+    }
+}
+
+impl serde::Serialize for PhotoSetFormat {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(self.name())
+    }
 }
 
 /// What [`ViewSource::check_photos`] found in a photo set.
@@ -217,9 +240,6 @@ struct PhotoFrame {
     /// The object mask; without one, the image's alpha channel, or else the
     /// whole image.
     mask_path: Option<std::path::PathBuf>,
-    /// The least mask value that counts as object: 128 in a `cameras.json`,
-    /// 1 in nerfstudio's files, which count any value but 0 as set.
-    mask_threshold: u8,
     /// A 16-bit depth PNG in millimetres, as `export-nerfstudio` writes.
     depth_path: Option<std::path::PathBuf>,
     /// The frame's `w`, `h` (null when absent), checked against its image.
@@ -530,13 +550,15 @@ impl ViewSource {
                             path.display()
                         )));
                     }
-                    if (w, h) != (width, height) {
-                        return Err(bad(format!(
-                            "the {what} {} is {w}x{h} but the image {} is {width}x{height}",
-                            path.display(),
-                            frame.image_path.display()
-                        )));
-                    }
+                    check_companion_size(
+                        cameras_json,
+                        index,
+                        frame,
+                        what,
+                        path,
+                        (w, h),
+                        (width, height),
+                    )?;
                 }
                 let mask = match &frame.mask_path {
                     Some(_) => MaskKind::File,
@@ -575,8 +597,15 @@ impl ViewSource {
             Frames::Photos {
                 cameras_json,
                 frames,
+                format,
                 ..
-            } => load_photo(cameras_json, index, &frames[index], self.downscale),
+            } => load_photo(
+                cameras_json,
+                index,
+                &frames[index],
+                format.mask_threshold(),
+                self.downscale,
+            ),
         }
     }
 }
@@ -631,7 +660,6 @@ fn cameras_json_frames(
             cy: cy + 0.5,
             image_path: file("file_path")?,
             mask_path: Some(file("mask_path")?),
-            mask_threshold: 128,
             depth_path: None,
             stated_size: [fr["w"].clone(), fr["h"].clone()],
         });
@@ -758,7 +786,6 @@ fn transforms_json_frames(
             cy: number("cy")?.unwrap_or(h / 2.0),
             image_path,
             mask_path: file("mask_path")?,
-            mask_threshold: 1,
             depth_path: file("depth_file_path")?,
             stated_size,
         });
@@ -915,10 +942,36 @@ fn check_stated_size(
     Ok(())
 }
 
+/// A frame's mask or depth map (`what`, at `path`) must be its image's size.
+fn check_companion_size(
+    cameras_json: &std::path::Path,
+    index: usize,
+    frame: &PhotoFrame,
+    what: &str,
+    path: &std::path::Path,
+    (w, h): (u32, u32),
+    (width, height): (u32, u32),
+) -> Result<(), SplatError> {
+    if (w, h) == (width, height) {
+        return Ok(());
+    }
+    Err(SplatError::file(
+        cameras_json,
+        format!(
+            "frames[{index}]: the {what} {} is {w}x{h} but the image {} is {width}x{height}",
+            path.display(),
+            frame.image_path.display()
+        ),
+    ))
+}
+
+/// A frame of a photo set, its mask's values from `mask_threshold` up
+/// counting as object.
 fn load_photo(
     cameras_json: &std::path::Path,
     index: usize,
     frame: &PhotoFrame,
+    mask_threshold: u8,
     f: u32,
 ) -> Result<View, SplatError> {
     use omniscan_core::image_io::{Mask, read_depth, read_mask, read_rgb, read_rgb_and_alpha};
@@ -928,22 +981,22 @@ fn load_photo(
         Some(mask_path) => {
             let rgb = read_rgb(image_path)?;
             let mut mask = read_mask(mask_path)?;
-            if frame.mask_threshold != 128 {
+            if mask_threshold != 128 {
                 for v in &mut mask.data {
-                    *v = if *v >= frame.mask_threshold { 255 } else { 0 };
+                    *v = if *v >= mask_threshold { 255 } else { 0 };
                 }
             }
-            if (mask.width, mask.height) != (rgb.width, rgb.height) {
-                return Err(bad(&format!(
-                    "the mask {} is {}x{} but the image {} is {}x{}",
-                    mask_path.display(),
-                    mask.width,
-                    mask.height,
-                    image_path.display(),
-                    rgb.width,
-                    rgb.height
-                )));
-            }
+            let size = (mask.width, mask.height);
+            let image_size = (rgb.width, rgb.height);
+            check_companion_size(
+                cameras_json,
+                index,
+                frame,
+                "mask",
+                mask_path,
+                size,
+                image_size,
+            )?;
             (rgb, mask)
         }
         None => {
@@ -969,17 +1022,17 @@ fn load_photo(
     let depth = match &frame.depth_path {
         Some(depth_path) => {
             let depth = read_depth(depth_path)?;
-            if (depth.width, depth.height) != (rgb.width, rgb.height) {
-                return Err(bad(&format!(
-                    "the depth map {} is {}x{} but the image {} is {}x{}",
-                    depth_path.display(),
-                    depth.width,
-                    depth.height,
-                    image_path.display(),
-                    rgb.width,
-                    rgb.height
-                )));
-            }
+            let size = (depth.width, depth.height);
+            let image_size = (rgb.width, rgb.height);
+            check_companion_size(
+                cameras_json,
+                index,
+                frame,
+                "depth map",
+                depth_path,
+                size,
+                image_size,
+            )?;
             shrink_depth(&depth, f)
         }
         None => Vec::new(),

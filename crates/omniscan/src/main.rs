@@ -435,9 +435,7 @@ fn run(cli: Cli) -> Result<()> {
                     println!(
                         "{}: valid photo set ({}), {} frames, {size}, object masks: {} files / {} alpha / {} whole images, depth maps: {}, initial points: {}",
                         photos.display(),
-                        serde_json::to_value(summary.format)?
-                            .as_str()
-                            .unwrap_or("?"),
+                        summary.format.name(),
                         summary.frames,
                         summary.mask_files,
                         summary.alpha_masks,
