@@ -9,6 +9,7 @@ pub mod error;
 pub mod geometry;
 pub mod image_io;
 pub mod io;
+pub mod lens;
 pub mod nerfstudio;
 pub mod plan;
 pub mod ply;

@@ -4,7 +4,9 @@
 //!
 //! The mask is the object mask: nerfstudio ignores pixels where it is 0, so
 //! the background and the gripper (never part of the object mask) take no
-//! part in training.
+//! part in training. The gripper mask goes beside it under omniscan's own
+//! key, `gripper_mask_path`, so that omniscan reading the set back leaves the
+//! gripper out of its losses as it does in the capture.
 
 use std::path::{Path, PathBuf};
 
@@ -39,6 +41,11 @@ struct TransformsFrame {
     mask_path: Option<String>,
     #[serde(skip_serializing_if = "Option::is_none")]
     depth_file_path: Option<String>,
+    /// omniscan's own key (nerfstudio ignores it): the pixels the gripper
+    /// covers, which a capture leaves out of every loss; without it, a set
+    /// read back would train them as background.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    gripper_mask_path: Option<String>,
 }
 
 /// Options of [`export_nerfstudio`].
@@ -78,7 +85,8 @@ fn extension(path: &str) -> &str {
         .unwrap_or("png")
 }
 
-/// Writes `out/transforms.json` with `out/images`, `out/masks` and `out/depth`.
+/// Writes `out/transforms.json` with `out/images`, `out/masks`,
+/// `out/grippers` (gripper masks) and `out/depth`.
 pub fn export_nerfstudio(
     capture: &Capture,
     out: &Path,
@@ -115,6 +123,18 @@ pub fn export_nerfstudio(
         } else {
             None
         };
+        let gripper_source = frame
+            .gripper_mask_path
+            .as_ref()
+            .or_else(|| frame.gt.as_ref().and_then(|g| g.gripper_mask_path.as_ref()));
+        let gripper_mask_path = match gripper_source {
+            Some(source) if options.masks => {
+                let mask = format!("grippers/{name}.png");
+                link_or_copy(&capture.resolve(source), &out.join(&mask))?;
+                Some(mask)
+            }
+            _ => None,
+        };
         let depth_file_path = match &frame.depth_path {
             Some(d) => {
                 let depth = format!("depth/{name}.png");
@@ -135,6 +155,7 @@ pub fn export_nerfstudio(
             transform_matrix: matrix,
             mask_path,
             depth_file_path,
+            gripper_mask_path,
         });
     }
     let file = TransformsFile {

@@ -135,7 +135,7 @@ fn loss_and_gradient<F: Real>(
         None => r
             .alpha
             .iter()
-            .zip(&view.gripper)
+            .zip(&view.excluded)
             .map(|(&a, &grip)| a >= half && grip < 0.5)
             .collect(),
     };
@@ -153,12 +153,12 @@ fn loss_and_gradient<F: Real>(
     }
     let mut d_alpha = vec![F::zero(); counted.len()];
     if silhouette > 0.0 {
-        let free = view.gripper.iter().filter(|&&g| g < 0.5).count().max(1);
+        let free = view.excluded.iter().filter(|&&g| g < 0.5).count().max(1);
         let w = F::c(silhouette / free as f64);
         for (i, (&a, (&o, &grip))) in r
             .alpha
             .iter()
-            .zip(view.object.iter().zip(&view.gripper))
+            .zip(view.object.iter().zip(&view.excluded))
             .enumerate()
         {
             if grip < 0.5 {
@@ -252,7 +252,7 @@ pub fn refine_offset(
     }
     for (i, v) in views.iter().enumerate() {
         let n = (v.camera.width * v.camera.height) as usize;
-        if v.image.len() != n || v.object.len() != n || v.gripper.len() != n {
+        if v.image.len() != n || v.object.len() != n || v.excluded.len() != n {
             return Err(SplatError::Invalid(format!(
                 "offset refinement: view {i}'s image and masks do not have {}x{} pixels",
                 v.camera.width, v.camera.height
@@ -484,7 +484,7 @@ mod tests {
                     camera: *c,
                     image: r.rgb.clone(),
                     object: r.alpha.iter().map(|&a| f32::from(a >= 0.5)).collect(),
-                    gripper: (0..w * h).map(|i| f32::from(i / w >= h - 4)).collect(),
+                    excluded: (0..w * h).map(|i| f32::from(i / w >= h - 4)).collect(),
                     depth: Vec::new(),
                 }
             })

@@ -354,7 +354,7 @@ pub fn initial_splats(
             if let Some((u, w)) = project_point(&v.camera, p) {
                 let i = w * v.camera.width as usize + u;
                 in_image += 1;
-                if v.object[i] < 0.5 && v.gripper[i] < 0.5 {
+                if v.object[i] < 0.5 && v.excluded[i] < 0.5 {
                     inside = false;
                     break;
                 }
@@ -462,7 +462,7 @@ pub fn step_loss(
             [0, 1, 2].map(|c| view.image[i][c] * m + background[c] * (1.0 - m))
         })
         .collect();
-    let weight: Vec<f32> = view.gripper.par_iter().map(|g| 1.0 - g).collect();
+    let weight: Vec<f32> = view.excluded.par_iter().map(|g| 1.0 - g).collect();
     let wsum = weight.iter().sum::<f32>().max(1.0);
     let lam = config.lambda_ssim;
     let (mut d_rgb, d_alpha): (Vec<[f32; 3]>, Vec<f32>) = (0..n_px)
@@ -511,7 +511,7 @@ pub fn step_loss(
     let psnr = psnr(
         &rendered,
         &wanted,
-        Some(&view.gripper.iter().map(|&x| x < 0.5).collect::<Vec<_>>()),
+        Some(&view.excluded.iter().map(|&x| x < 0.5).collect::<Vec<_>>()),
     )
     .unwrap_or(0.0);
     StepLoss {
@@ -737,7 +737,7 @@ pub fn train_resumable(
             let target = LossTarget {
                 image: &view.image,
                 object: &view.object,
-                gripper: &view.gripper,
+                excluded: &view.excluded,
                 background,
                 lambda_ssim: config.lambda_ssim,
                 lambda_opacity: config.lambda_opacity,
@@ -1066,7 +1066,7 @@ pub fn evaluate_views<'a>(
             pixels: &target,
         };
         let mask: Vec<bool> = (0..w * h)
-            .map(|i| v.object[i] >= 0.5 && r.alpha[i] >= 0.5 && v.gripper[i] < 0.5)
+            .map(|i| v.object[i] >= 0.5 && r.alpha[i] >= 0.5 && v.excluded[i] < 0.5)
             .collect();
         let (mut l_all, mut l_mask) = (None, None);
         if let Some(net) = lpips {
@@ -1246,7 +1246,7 @@ mod tests {
                         .iter()
                         .map(|&a| if a > 0.5 { 1.0 } else { 0.0 })
                         .collect(),
-                    gripper: vec![0.0; r.alpha.len()],
+                    excluded: vec![0.0; r.alpha.len()],
                     depth: Vec::new(),
                 }
             })

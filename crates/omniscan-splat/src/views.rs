@@ -12,6 +12,8 @@
 
 use rayon::prelude::*;
 
+use omniscan_core::lens::{Distortion, Undistortion};
+
 use crate::SplatError;
 use crate::raster::Camera;
 
@@ -22,8 +24,10 @@ pub struct View {
     pub image: Vec<[f32; 3]>,
     /// 1 on the object, 0 elsewhere.
     pub object: Vec<f32>,
-    /// 1 on the gripper (excluded from every loss term), 0 elsewhere.
-    pub gripper: Vec<f32>,
+    /// 1 where every loss term is zeroed, 0 elsewhere: the gripper (the
+    /// paper's gripper-agnostic losses), or where an undistorted photo's lens
+    /// saw nothing ([`omniscan_core::lens`]).
+    pub excluded: Vec<f32>,
     /// Sensor depth along the optical axis, metres, 0 where unknown; empty if the capture has none.
     pub depth: Vec<f32>,
 }
@@ -126,6 +130,26 @@ fn shrink_object(
     (image, coverage)
 }
 
+/// A mask shrunk by `f`: 1 where any pixel of the block is in it (a pixel
+/// partly on the gripper, or partly unseen, is left out of the loss whole),
+/// 0 elsewhere.
+fn shrink_any(mask: &omniscan_core::image_io::Mask, f: u32) -> Vec<f32> {
+    let (w, h, f) = (
+        (mask.width / f) as usize,
+        (mask.height / f) as usize,
+        f as usize,
+    );
+    let full_w = mask.width as usize;
+    (0..w * h)
+        .map(|o| {
+            let (x, y) = (o % w, o / w);
+            let any =
+                (0..f * f).any(|d| mask.data[(y * f + d / f) * full_w + x * f + d % f] >= 128);
+            f32::from(u8::from(any))
+        })
+        .collect()
+}
+
 /// A depth map in millimetres shrunk by `f` to metres: each block's nearest
 /// valid sample (0 where it has none).
 fn shrink_depth(depth: &omniscan_core::image_io::DepthMm, f: u32) -> Vec<f32> {
@@ -223,6 +247,10 @@ pub struct PhotoSetSummary {
     pub alpha_masks: usize,
     pub whole_image_masks: usize,
     pub depth_maps: usize,
+    /// Frames with a gripper mask (`gripper_mask_path`), left out of every loss.
+    pub gripper_masks: usize,
+    /// Frames whose lens distortion is undone as they are read.
+    pub undistorted: usize,
     pub initial_points: Option<std::path::PathBuf>,
 }
 
@@ -242,8 +270,13 @@ struct PhotoFrame {
     mask_path: Option<std::path::PathBuf>,
     /// A 16-bit depth PNG in millimetres, as `export-nerfstudio` writes.
     depth_path: Option<std::path::PathBuf>,
+    /// The pixels left out of every loss (`export-nerfstudio`'s
+    /// `gripper_mask_path`): the gripper in a robot's capture.
+    gripper_mask_path: Option<std::path::PathBuf>,
     /// The frame's `w`, `h` (null when absent), checked against its image.
     stated_size: [serde_json::Value; 2],
+    /// The lens's distortion, undone as the view is read; `None` for a pinhole.
+    distortion: Option<Distortion>,
 }
 
 /// Reads and parses a JSON file, naming it in any error.
@@ -350,12 +383,17 @@ impl ViewSource {
     /// optional `depth_file_path` (16-bit, millimetres) carves the initial
     /// splats as a capture's depth does, and an optional `ply_file_path`
     /// names the set's starting points ([`initial_points`](Self::initial_points)).
+    /// `export-nerfstudio`'s own `gripper_mask_path` marks pixels left out of
+    /// every loss, as a capture's gripper mask does.
     ///
-    /// Only pinhole cameras: a file with lens distortion (`k1`…`k4`, `p1`,
-    /// `p2` not 0) or a fisheye or panoramic `camera_model` is refused, since
-    /// rendering it as a pinhole would misplace every pixel off the centre.
-    /// The object is looked for around the world origin, where
-    /// `export-nerfstudio` and Blender's sets put it.
+    /// Lens distortion is undone as each view is read
+    /// ([`omniscan_core::lens`]): nerfstudio's perspective cameras
+    /// (`camera_model` OPENCV, PINHOLE, SIMPLE_PINHOLE, RADIAL, SIMPLE_RADIAL;
+    /// `k1`, `k2`, `k3`, `p1`, `p2`) and OPENCV_FISHEYE (`k1`…`k4`). A
+    /// perspective `k4`, which nerfstudio refuses too, and other models
+    /// (panoramic, FISHEYE624) are refused by name. The object is looked for
+    /// around the world origin, where `export-nerfstudio` and Blender's sets
+    /// put it.
     pub fn from_transforms_json(
         path: &std::path::Path,
         downscale: u32,
@@ -540,6 +578,12 @@ impl ViewSource {
                         omniscan_core::image_io::ColorType::L16,
                         "a 16-bit greyscale PNG in millimetres",
                     ),
+                    (
+                        &frame.gripper_mask_path,
+                        "gripper mask",
+                        omniscan_core::image_io::ColorType::L8,
+                        "an 8-bit greyscale PNG",
+                    ),
                 ];
                 for (path, what, kind, described) in companions {
                     let Some(path) = path else { continue };
@@ -584,6 +628,11 @@ impl ViewSource {
             alpha_masks: count(MaskKind::Alpha),
             whole_image_masks: count(MaskKind::WholeImage),
             depth_maps: frames.iter().filter(|f| f.depth_path.is_some()).count(),
+            gripper_masks: frames
+                .iter()
+                .filter(|f| f.gripper_mask_path.is_some())
+                .count(),
+            undistorted: frames.iter().filter(|f| f.distortion.is_some()).count(),
             initial_points: initial_points.clone(),
         }))
     }
@@ -661,7 +710,9 @@ fn cameras_json_frames(
             image_path: file("file_path")?,
             mask_path: Some(file("mask_path")?),
             depth_path: None,
+            gripper_mask_path: None,
             stated_size: [fr["w"].clone(), fr["h"].clone()],
+            distortion: None,
         });
     }
     Ok(frames)
@@ -707,25 +758,41 @@ fn transforms_json_frames(
                 .map(Some)
                 .ok_or_else(|| bad(&format!("`{k}` must be a finite number, got {v}"))),
         };
-        if let Some(model) = value("camera_model")
-            && !matches!(
-                model.as_str(),
-                Some("OPENCV" | "PINHOLE" | "SIMPLE_PINHOLE")
-            )
-        {
-            return Err(bad(&format!(
-                "camera_model {model} is not supported: omniscan renders pinhole cameras (OPENCV without distortion, PINHOLE, SIMPLE_PINHOLE)"
-            )));
-        }
-        for k in ["k1", "k2", "k3", "k4", "p1", "p2"] {
-            if let Some(v) = number(k)?
-                && v != 0.0
-            {
+        let coefficient = |k: &str| number(k).map(|v| v.unwrap_or(0.0));
+        let [k1, k2, k3, k4, p1, p2] = ["k1", "k2", "k3", "k4", "p1", "p2"].map(coefficient);
+        let [k1, k2, k3, k4, p1, p2] = [k1?, k2?, k3?, k4?, p1?, p2?];
+        let model = match value("camera_model") {
+            None => "OPENCV",
+            Some(m) => m.as_str().unwrap_or(""),
+        };
+        let distortion = match model {
+            // nerfstudio's perspective cameras, as COLMAP's are written.
+            "OPENCV" | "PINHOLE" | "SIMPLE_PINHOLE" | "RADIAL" | "SIMPLE_RADIAL" => {
+                if k4 != 0.0 {
+                    return Err(bad(&format!(
+                        "`k4` is {k4}, but a perspective camera ({model}) is distorted by k1, k2, k3, p1, p2 only (nerfstudio refuses it too)"
+                    )));
+                }
+                [k1, k2, k3, p1, p2]
+                    .iter()
+                    .any(|&v| v != 0.0)
+                    .then_some(Distortion::RadialTangential { k1, k2, k3, p1, p2 })
+            }
+            "OPENCV_FISHEYE" => {
+                if p1 != 0.0 || p2 != 0.0 {
+                    return Err(bad(&format!(
+                        "`p1`, `p2` are {p1}, {p2}, but an OPENCV_FISHEYE camera's distortion is k1, k2, k3, k4"
+                    )));
+                }
+                Some(Distortion::Fisheye { k1, k2, k3, k4 })
+            }
+            _ => {
                 return Err(bad(&format!(
-                    "`{k}` is {v}: lens distortion is not modelled, so undistort the images first (and set it to 0)"
+                    "camera_model {} is not supported: omniscan reads perspective cameras (OPENCV, PINHOLE, SIMPLE_PINHOLE, RADIAL, SIMPLE_RADIAL) and OPENCV_FISHEYE",
+                    value("camera_model").cloned().unwrap_or_default()
                 )));
             }
-        }
+        };
         let c2w = fr
             .get("transform_matrix")
             .and_then(matrix4)
@@ -787,7 +854,9 @@ fn transforms_json_frames(
             image_path,
             mask_path: file("mask_path")?,
             depth_path: file("depth_file_path")?,
+            gripper_mask_path: file("gripper_mask_path")?,
             stated_size,
+            distortion,
         });
     }
     Ok(frames)
@@ -835,8 +904,6 @@ fn load_capture_view(
     f: u32,
 ) -> Result<View, SplatError> {
     use omniscan_core::image_io::{read_mask, read_rgb};
-    let k = capture.intrinsics();
-    let (w, h) = (k.width / f, k.height / f);
     let frame = &capture.file.frames[v.frame_index];
     let gt = frame.gt.as_ref();
     let object_path = frame
@@ -873,29 +940,13 @@ fn load_capture_view(
             )));
         }
     }
-    let full_w = rgb.width as usize;
     let (image, obj) = shrink_object(&rgb, &object, f);
     let depth = depth_map.map(|d| shrink_depth(&d, f)).unwrap_or_default();
-    let mut grip = vec![0.0f32; (w * h) as usize];
-    let area = (f * f) as f32;
-    for y in 0..h as usize {
-        for x in 0..w as usize {
-            let o = y * w as usize + x;
-            for dy in 0..f as usize {
-                for dx in 0..f as usize {
-                    let i = (y * f as usize + dy) * full_w + x * f as usize + dx;
-                    grip[o] += (gripper.data[i] >= 128) as u8 as f32 / area;
-                }
-            }
-            // A pixel partly covered by the gripper is left out of the loss.
-            grip[o] = if grip[o] > 0.0 { 1.0 } else { 0.0 };
-        }
-    }
     Ok(View {
         camera: capture_camera(capture, v, f),
         image,
         object: obj,
-        gripper: grip,
+        excluded: shrink_any(&gripper, f),
         depth,
     })
 }
@@ -1033,16 +1084,67 @@ fn load_photo(
                 size,
                 image_size,
             )?;
-            shrink_depth(&depth, f)
+            Some(depth)
         }
+        None => None,
+    };
+    let gripper = match &frame.gripper_mask_path {
+        Some(path) => {
+            let mut gripper = read_mask(path)?;
+            for v in &mut gripper.data {
+                *v = if *v >= mask_threshold { 255 } else { 0 };
+            }
+            let size = (gripper.width, gripper.height);
+            let image_size = (rgb.width, rgb.height);
+            check_companion_size(
+                cameras_json,
+                index,
+                frame,
+                "gripper mask",
+                path,
+                size,
+                image_size,
+            )?;
+            Some(gripper)
+        }
+        None => None,
+    };
+    let camera = photo_camera(frame, rgb.width, rgb.height, f);
+    let Some(distortion) = &frame.distortion else {
+        let (image, object) = shrink_object(&rgb, &mask, f);
+        return Ok(View {
+            camera,
+            image,
+            object,
+            excluded: gripper
+                .map(|g| shrink_any(&g, f))
+                .unwrap_or_else(|| vec![0.0; (w * h) as usize]),
+            depth: depth.map(|d| shrink_depth(&d, f)).unwrap_or_default(),
+        });
+    };
+    let undistortion = Undistortion::new(
+        distortion,
+        [frame.fl_x, frame.fl_y, frame.cx, frame.cy],
+        rgb.width,
+        rgb.height,
+    );
+    let (image, object) = shrink_object(&undistortion.rgb(&rgb)?, &undistortion.mask(&mask)?, f);
+    let depth = match depth {
+        Some(d) => shrink_depth(&undistortion.depth(&d)?, f),
         None => Vec::new(),
     };
-    let (image, object) = shrink_object(&rgb, &mask, f);
+    // Left out: what the lens did not see, and the gripper where it did.
+    let mut excluded = undistortion.unseen_mask();
+    if let Some(g) = gripper {
+        for (e, g) in excluded.data.iter_mut().zip(undistortion.mask(&g)?.data) {
+            *e = (*e).max(g);
+        }
+    }
     Ok(View {
-        camera: photo_camera(frame, rgb.width, rgb.height, f),
+        camera,
         image,
         object,
-        gripper: vec![0.0; (w * h) as usize],
+        excluded: shrink_any(&excluded, f),
         depth,
     })
 }
@@ -1267,7 +1369,7 @@ mod tests {
         assert_eq!(camera.viewmat[1][1], -1.0);
         let expected_mask: Vec<f32> = (0..32).map(|i| ((i % 8) < 4) as u8 as f32).collect();
         assert_eq!(view.object, expected_mask);
-        assert!(view.gripper.iter().all(|&g| g == 0.0));
+        assert!(view.excluded.iter().all(|&g| g == 0.0));
         assert_eq!(view.depth, vec![1.0; 32]);
         assert!(view.image.iter().all(|c| c[0] == 200.0 / 255.0));
         // Shrunk by 2 the intrinsics halve with it, as in a capture.
@@ -1313,6 +1415,15 @@ mod tests {
             .unwrap();
         let right: Vec<f32> = (0..32).map(|i| ((i % 8) >= 4) as u8 as f32).collect();
         assert_eq!(view.object, right);
+        // `export-nerfstudio`'s gripper mask is left out of every loss.
+        let mut gripped = masked.clone();
+        gripped["frames"][0]["gripper_mask_path"] = "m.png".into();
+        std::fs::write(&path, gripped.to_string()).unwrap();
+        let view = ViewSource::from_photo_set(&path, 1)
+            .unwrap()
+            .load(0)
+            .unwrap();
+        assert_eq!(view.excluded, right);
         masked["frames"][0]["mask_path"] = "copy.png".into();
         std::fs::write(&path, masked.to_string()).unwrap();
         let error = ViewSource::from_photo_set(&path, 1)
@@ -1356,6 +1467,7 @@ mod tests {
         )
         .unwrap();
         masked["mask_path"] = "m.png".into();
+        masked["k1"] = (-0.1).into();
         set["frames"] = serde_json::json!([file["frames"][0], masked]);
         set["ply_file_path"] = "points.ply".into();
         std::fs::write(&path, set.to_string()).unwrap();
@@ -1375,6 +1487,8 @@ mod tests {
                 alpha_masks: 1,
                 whole_image_masks: 0,
                 depth_maps: 2,
+                gripper_masks: 0,
+                undistorted: 1,
                 initial_points: Some(dir.path().join("points.ply")),
             }
         );
@@ -1418,21 +1532,125 @@ mod tests {
     }
 
     #[test]
+    fn a_nerfstudio_sets_lens_distortion_is_undone_as_its_views_are_read() {
+        use omniscan_core::image_io::{
+            DepthMm, Mask, RgbImage, write_depth, write_mask, write_rgb,
+        };
+        let dir = tempfile::tempdir().unwrap();
+        let (width, height) = (64u32, 8u32);
+        // A ramp across the photo, 4 levels a pixel, so a colour tells
+        // where on the photo it was read (bilinear reads a ramp exactly).
+        let ramp = |i: u32| (4 * i) as u8;
+        write_rgb(
+            &dir.path().join("0.png"),
+            &RgbImage {
+                width,
+                height,
+                data: (0..width * height)
+                    .flat_map(|p| [ramp(p % width); 3])
+                    .collect(),
+            },
+        )
+        .unwrap();
+        write_mask(
+            &dir.path().join("0m.png"),
+            &Mask {
+                width,
+                height,
+                data: vec![255; (width * height) as usize],
+            },
+        )
+        .unwrap();
+        let depth = DepthMm {
+            width,
+            height,
+            data: vec![800; (width * height) as usize],
+        };
+        write_depth(&dir.path().join("0d.png"), &depth).unwrap();
+        let (fl, cx, cy, k1) = (40.0, 32.0, 4.0, 0.05);
+        let set = serde_json::json!({
+            "camera_model": "OPENCV",
+            "fl_x": fl, "fl_y": fl, "cx": cx, "cy": cy, "w": width, "h": height,
+            "k1": k1, "k2": 0.0, "p1": 0.0, "p2": 0.0,
+            "frames": [{
+                "file_path": "0.png", "mask_path": "0m.png", "depth_file_path": "0d.png",
+                "transform_matrix": [[1., 0., 0., 0.], [0., 1., 0., 0.], [0., 0., 1., 5.], [0., 0., 0., 1.]],
+            }],
+        });
+        let path = dir.path().join("transforms.json");
+        std::fs::write(&path, set.to_string()).unwrap();
+        let view = ViewSource::from_photo_set(&path, 1)
+            .unwrap()
+            .load(0)
+            .unwrap();
+        // The file's intrinsics stay: the view is the pinhole camera's.
+        assert_eq!(
+            (view.camera.fx, view.camera.cx, view.camera.width),
+            (40.0, 32.0, 64)
+        );
+        let (mut seen, mut unseen) = (0, 0);
+        for p in 0..(width * height) as usize {
+            let (i, j) = ((p as u32 % width) as f64, (p as u32 / width) as f64);
+            let (x, y) = ((i + 0.5 - cx) / fl, (j + 0.5 - cy) / fl);
+            // Where the lens put this pixel's ray, in photo pixels (first centre at 0).
+            let u = fl * x * (1.0 + k1 * (x * x + y * y)) + cx - 0.5;
+            if (-0.5..=width as f64 - 0.5).contains(&u) {
+                seen += 1;
+                let expected = 4.0 * u.clamp(0.0, width as f64 - 1.0) / 255.0;
+                assert!(
+                    (view.image[p][0] as f64 - expected).abs() <= 0.6 / 255.0,
+                    "pixel {p}: {} against {expected}",
+                    view.image[p][0]
+                );
+                assert_eq!(
+                    (view.object[p], view.excluded[p], view.depth[p]),
+                    (1.0, 0.0, 0.8)
+                );
+            } else {
+                // Past the photo's edge: out of every loss, and not object.
+                unseen += 1;
+                assert_eq!(
+                    (view.object[p], view.excluded[p], view.depth[p]),
+                    (0.0, 1.0, 0.0),
+                    "pixel {p}"
+                );
+            }
+        }
+        assert!(seen > 400 && unseen > 0, "{seen} seen, {unseen} unseen");
+        // Shrunk, a block with any unseen pixel is left out whole.
+        let half = ViewSource::from_photo_set(&path, 2)
+            .unwrap()
+            .load(0)
+            .unwrap();
+        for (p, &e) in half.excluded.iter().enumerate() {
+            let (i, j) = (p % 32 * 2, p / 32 * 2);
+            let any = [(0, 0), (1, 0), (0, 1), (1, 1)]
+                .iter()
+                .any(|(di, dj)| view.excluded[(j + dj) * 64 + i + di] == 1.0);
+            assert_eq!(e, f32::from(u8::from(any)), "shrunk pixel {p}");
+        }
+    }
+
+    #[test]
     fn a_nerfstudio_sets_unsupported_cameras_are_refused_by_name() {
         let (dir, file) = one_nerfstudio_set();
         let frame = file["frames"][0].clone();
         let path = dir.path().join("transforms.json");
         let cases: [(&str, serde_json::Value, &str); 6] = [
             (
-                "k1",
+                "k4",
                 serde_json::json!(0.01),
-                "`k1` is 0.01: lens distortion",
+                "`k4` is 0.01, but a perspective camera (OPENCV)",
             ),
-            ("p2", serde_json::json!(-0.002), "`p2` is -0.002"),
+            (
+                "k1",
+                serde_json::json!("0.1"),
+                "`k1` must be a finite number",
+            ),
             (
                 "camera_model",
-                serde_json::json!("OPENCV_FISHEYE"),
-                "camera_model \"OPENCV_FISHEYE\" is not supported",
+                serde_json::json!("EQUIRECTANGULAR"),
+                "camera_model \"EQUIRECTANGULAR\" is not supported",
             ),
             ("fl_x", serde_json::json!(0.0), "`fl_x` must be a positive"),
             (
@@ -1463,6 +1681,17 @@ mod tests {
             .to_string();
         assert!(
             error.contains("frames[1]: `w` is 16 but the image"),
+            "{error}"
+        );
+        // A fisheye's distortion has no tangential terms.
+        let mut fisheye = frame.clone();
+        fisheye["camera_model"] = "OPENCV_FISHEYE".into();
+        fisheye["p1"] = 0.001.into();
+        let mut set = file.clone();
+        set["frames"] = serde_json::json!([frame, fisheye]);
+        let error = error_of(&path, &set, |s| s.load_all());
+        assert!(
+            error.contains("frames[1]: `p1`, `p2` are 0.001, 0"),
             "{error}"
         );
         // No focal length at all: neither `fl_x` nor `camera_angle_x`.

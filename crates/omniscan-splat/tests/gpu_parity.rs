@@ -352,7 +352,7 @@ fn training_on_the_gpu_follows_the_cpu_reference() {
                     .iter()
                     .map(|&a| if a > 0.5 { 1.0 } else { 0.0 })
                     .collect(),
-                gripper: vec![0.0; r.alpha.len()],
+                excluded: vec![0.0; r.alpha.len()],
                 depth: Vec::new(),
             }
         })
@@ -510,11 +510,11 @@ fn mcmc_noise_on_the_gpu_matches_the_cpu() {
         absolute_gradients: false,
     };
     let image = vec![[0.5f32; 3]; pixels];
-    let (object, gripper) = (vec![1.0f32; pixels], vec![0.0f32; pixels]);
+    let (object, excluded) = (vec![1.0f32; pixels], vec![0.0f32; pixels]);
     let target = LossTarget {
         image: &image,
         object: &object,
-        gripper: &gripper,
+        excluded: &excluded,
         background: [0.0; 3],
         lambda_ssim: 0.2,
         lambda_opacity: 1.0,
@@ -579,7 +579,7 @@ fn evaluation_on_the_gpu_matches_the_cpu() {
                 camera: cam,
                 image: r.rgb.clone(),
                 object: r.alpha.iter().map(|&a| (a > 0.5) as u8 as f32).collect(),
-                gripper: (0..r.alpha.len())
+                excluded: (0..r.alpha.len())
                     .map(|p| (p % 64 < 6) as u8 as f32)
                     .collect(),
                 depth: Vec::new(),

@@ -67,7 +67,7 @@ enum Command {
     },
     /// Gripper and object masks for every frame of a capture (kinematic gripper masks, the paper's object pipeline).
     Mask(mask::MaskArgs),
-    /// Write a nerfstudio transforms.json (OpenGL camera axes, object masks).
+    /// Write a nerfstudio transforms.json (OpenGL camera axes, object masks; gripper masks under omniscan's own gripper_mask_path, which nerfstudio ignores).
     ExportNerfstudio {
         capture: PathBuf,
         #[arg(long, value_enum)]
@@ -433,7 +433,7 @@ fn run(cli: Cli) -> Result<()> {
                         _ => "sizes vary".into(),
                     };
                     println!(
-                        "{}: valid photo set ({}), {} frames, {size}, object masks: {} files / {} alpha / {} whole images, depth maps: {}, initial points: {}",
+                        "{}: valid photo set ({}), {} frames, {size}, object masks: {} files / {} alpha / {} whole images, depth maps: {}, gripper masks: {}, lens distortion undone: {} frames, initial points: {}",
                         photos.display(),
                         summary.format.name(),
                         summary.frames,
@@ -441,6 +441,8 @@ fn run(cli: Cli) -> Result<()> {
                         summary.alpha_masks,
                         summary.whole_image_masks,
                         summary.depth_maps,
+                        summary.gripper_masks,
+                        summary.undistorted,
                         summary
                             .initial_points
                             .as_ref()

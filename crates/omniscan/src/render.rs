@@ -22,7 +22,7 @@ pub struct RenderArgs {
     /// Number of turntable views (ignored with --capture).
     #[arg(long, default_value_t = 8)]
     pub orbit: usize,
-    /// Render the cameras of this capture instead (in the model's frame: the holding gripper's, the left one's for both arms), or of a photo set (a transforms.json, its directory, or a cameras.json), each at its image's size.
+    /// Render the cameras of this capture instead (in the model's frame: the holding gripper's, the left one's for both arms), or of a photo set (a transforms.json, its directory, or a cameras.json), each at its image's size. A photo set's lens distortion is not applied: the renders are the pinhole camera's, which training compared with the undistorted photos.
     #[arg(long)]
     pub capture: Option<PathBuf>,
     /// Which arm's cameras of the capture.

@@ -194,7 +194,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 .iter()
                 .map(|&a| if a > 0.5 { 1.0 } else { 0.0 })
                 .collect(),
-            gripper: vec![0.0; pixels],
+            excluded: vec![0.0; pixels],
             depth: Vec::new(),
         };
         let config = omniscan_splat::train::TrainConfig::with_steps(1);
@@ -235,7 +235,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 let target = omniscan_splat::gpu::training::LossTarget {
                     image: &view.image,
                     object: &view.object,
-                    gripper: &view.gripper,
+                    excluded: &view.excluded,
                     background: settings.background,
                     lambda_ssim: config.lambda_ssim,
                     lambda_opacity: config.lambda_opacity,

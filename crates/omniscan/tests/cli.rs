@@ -131,9 +131,8 @@ fn sim_validate_and_export_round_trip() {
 #[test]
 fn a_nerfstudio_export_trains_and_scores_as_its_capture_does() {
     // `export-nerfstudio` read back as a photo set: the same cameras, photos,
-    // object masks and depth as the capture's left arm, so a model scores the
-    // same against either (the masked figures leave out the gripper, which
-    // the export does not carry).
+    // object masks, gripper masks and depth as the capture's left arm, so it
+    // trains to the same model and a model scores the same against either.
     let tmp = tempfile::tempdir().unwrap();
     let capture = tmp.path().join("cap");
     tiny_capture(&capture);
@@ -152,9 +151,10 @@ fn a_nerfstudio_export_trains_and_scores_as_its_capture_does() {
         (
             &checked["frames"],
             &checked["mask_files"],
-            &checked["depth_maps"]
+            &checked["depth_maps"],
+            &checked["gripper_masks"]
         ),
-        (&6.into(), &6.into(), &6.into()),
+        (&6.into(), &6.into(), &6.into(), &6.into()),
         "{checked}"
     );
     assert_eq!(checked["format"], "nerfstudio");
@@ -178,6 +178,35 @@ fn a_nerfstudio_export_trains_and_scores_as_its_capture_does() {
         "--json",
     ]);
     assert_eq!(trained["train"]["views"], 6, "{trained}");
+    // With the gripper masks it carries, the export trains to the capture's
+    // model, byte for byte, under the same appearance mode (a photo set's
+    // default is view-direction SH).
+    let from_capture_model = tmp.path().join("from_capture.ply");
+    omniscan_json(&[
+        "train",
+        capture.to_str().unwrap(),
+        "--arm",
+        "left",
+        "--appearance",
+        "view-direction",
+        "--out",
+        from_capture_model.to_str().unwrap(),
+        "--steps",
+        "60",
+        "--downscale",
+        "1",
+        "--initial-points",
+        "500",
+        "--sh-degree",
+        "0",
+        "--backend",
+        "cpu",
+        "--json",
+    ]);
+    assert!(
+        std::fs::read(&model).unwrap() == std::fs::read(&from_capture_model).unwrap(),
+        "the export's model differs from the capture's"
+    );
     let eval = |source: &Path| {
         omniscan_json(&[
             "eval",

@@ -89,8 +89,8 @@ pub struct LossTarget<'a> {
     pub image: &'a [[f32; 3]],
     /// 1 on the object.
     pub object: &'a [f32],
-    /// 1 on the gripper (excluded from every term).
-    pub gripper: &'a [f32],
+    /// 1 where every term is zeroed (the gripper, or what the lens did not see).
+    pub excluded: &'a [f32],
     /// This step's random background colour.
     pub background: [f32; 3],
     pub lambda_ssim: f32,
@@ -488,7 +488,7 @@ impl GpuRenderer {
         let kernels = self.optimise()?;
         let (width, height) = (frame.render.width, frame.render.height);
         let n = (width * height) as usize;
-        if target.image.len() != n || target.object.len() != n || target.gripper.len() != n {
+        if target.image.len() != n || target.object.len() != n || target.excluded.len() != n {
             return Err(SplatError::Invalid(format!(
                 "training step: the view's image and masks do not have {n} pixels"
             )));
@@ -497,11 +497,16 @@ impl GpuRenderer {
         let data: Vec<f32> = (0..n)
             .flat_map(|i| {
                 let c = target.image[i];
-                [c[0], c[1], c[2], target.object[i], target.gripper[i]]
+                [c[0], c[1], c[2], target.object[i], target.excluded[i]]
             })
             .collect();
         let target_data = self.storage("loss target", &data);
-        let weight_sum = target.gripper.iter().map(|g| 1.0 - g).sum::<f32>().max(1.0);
+        let weight_sum = target
+            .excluded
+            .iter()
+            .map(|g| 1.0 - g)
+            .sum::<f32>()
+            .max(1.0);
         let params = |planes: u32, horizontal: u32| {
             self.uniform(
                 "loss params",
