@@ -118,44 +118,43 @@ impl Undistortion {
     /// rasterizer's), onto the pinhole camera with the same four and size.
     pub fn new(
         distortion: &Distortion,
-        [fx, fy, cx, cy]: [f64; 4],
+        intrinsics: [f64; 4],
         width: u32,
         height: u32,
     ) -> Undistortion {
-        let normalised = |i: u32, j: u32| {
-            (
-                (f64::from(i) + 0.5 - cx) / fx,
-                (f64::from(j) + 0.5 - cy) / fy,
-            )
-        };
-        let r_max = [(0, 0), (width, 0), (0, height), (width, height)]
-            .iter()
-            .map(|&(i, j)| {
-                let (x, y) = normalised(i, j);
-                x.hypot(y)
-            })
-            .fold(0.0, f64::max);
-        let fold = distortion.fold_radius(r_max);
-        let (w, h) = (f64::from(width), f64::from(height));
+        let ray = RayTracer::new(distortion, intrinsics, width, height);
         let sources = (0..height)
             .flat_map(|j| (0..width).map(move |i| (i, j)))
-            .map(|(i, j)| {
-                let (x, y) = normalised(i, j);
-                if x.hypot(y) > fold {
-                    return None;
-                }
-                let [xd, yd] = distortion.distort(x, y);
-                let (u, v) = (fx * xd + cx, fy * yd + cy);
-                // Inside the photo's own footprint, edges included.
-                ((0.0..=w).contains(&u) && (0.0..=h).contains(&v))
-                    .then_some([(u - 0.5) as f32, (v - 0.5) as f32])
-            })
+            .map(|(i, j)| ray.source(f64::from(i) + 0.5, f64::from(j) + 0.5))
             .collect();
         Undistortion {
             width,
             height,
             sources,
         }
+    }
+
+    /// The share of [`new`](Self::new)'s pinhole pixels that the photo did
+    /// not see, estimated on a grid of at most 64 x 64 of them (cheap enough
+    /// to check every frame of a set before reading any image).
+    pub fn unseen_share(
+        distortion: &Distortion,
+        intrinsics: [f64; 4],
+        width: u32,
+        height: u32,
+    ) -> f64 {
+        let ray = RayTracer::new(distortion, intrinsics, width, height);
+        let (nx, ny) = (width.min(64), height.min(64));
+        let grid =
+            |n: u32, size: u32, k: u32| (f64::from(k) + 0.5) * f64::from(size) / f64::from(n);
+        let unseen = (0..ny)
+            .flat_map(|j| (0..nx).map(move |i| (i, j)))
+            .filter(|&(i, j)| {
+                ray.source(grid(nx, width, i), grid(ny, height, j))
+                    .is_none()
+            })
+            .count();
+        unseen as f64 / f64::from(nx * ny)
     }
 
     /// The pinhole pixels the photo did not see.
@@ -255,6 +254,49 @@ impl Undistortion {
             height: self.height,
             data,
         })
+    }
+}
+
+/// Traces a pinhole pixel's ray through the lens onto the photo.
+struct RayTracer<'a> {
+    distortion: &'a Distortion,
+    intrinsics: [f64; 4],
+    /// Rays further out than this pinhole radius fold back (see
+    /// [`Distortion::fold_radius`]).
+    fold: f64,
+    size: (f64, f64),
+}
+
+impl<'a> RayTracer<'a> {
+    fn new(distortion: &'a Distortion, intrinsics: [f64; 4], width: u32, height: u32) -> Self {
+        let [fx, fy, cx, cy] = intrinsics;
+        let (w, h) = (f64::from(width), f64::from(height));
+        let r_max = [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)]
+            .iter()
+            .map(|&(u, v)| ((u - cx) / fx).hypot((v - cy) / fy))
+            .fold(0.0, f64::max);
+        RayTracer {
+            distortion,
+            intrinsics,
+            fold: distortion.fold_radius(r_max),
+            size: (w, h),
+        }
+    }
+
+    /// Where the ray through pinhole position (u, v) (pixel (i, j)'s centre
+    /// at (i + 0.5, j + 0.5)) met the photo, with pixel (i, j)'s centre at
+    /// (i, j); `None` where the photo did not record it.
+    fn source(&self, u: f64, v: f64) -> Option<[f32; 2]> {
+        let [fx, fy, cx, cy] = self.intrinsics;
+        let (x, y) = ((u - cx) / fx, (v - cy) / fy);
+        if x.hypot(y) > self.fold {
+            return None;
+        }
+        let [xd, yd] = self.distortion.distort(x, y);
+        let (ud, vd) = (fx * xd + cx, fy * yd + cy);
+        // Inside the photo's own footprint, edges included.
+        ((0.0..=self.size.0).contains(&ud) && (0.0..=self.size.1).contains(&vd))
+            .then_some([(ud - 0.5) as f32, (vd - 0.5) as f32])
     }
 }
 
@@ -485,6 +527,15 @@ mod tests {
             );
             assert_eq!(s.is_some(), x.hypot(y) <= fold, "pixel {p}");
         }
+        // The grid's estimate of the unseen share, without the image.
+        let exact = undistortion.unseen() as f64 / (64.0 * 64.0);
+        let estimate = Undistortion::unseen_share(&lens, k, 64, 64);
+        assert!(
+            exact > 0.2 && (estimate - exact).abs() < 1e-9,
+            "{estimate} {exact}"
+        );
+        let large = Undistortion::unseen_share(&lens, k.map(|v| 4.0 * v), 256, 256);
+        assert!((large - exact).abs() < 0.02, "{large} against {exact}");
         // A model that rises everywhere has no fold.
         let gentle = Distortion::Fisheye {
             k1: 0.01,

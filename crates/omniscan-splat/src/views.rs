@@ -746,6 +746,7 @@ fn transforms_json_frames(
     let opengl_to_opencv =
         nalgebra::Matrix4::from_diagonal(&nalgebra::Vector4::new(1.0, -1.0, -1.0, 1.0));
     let mut frames = Vec::with_capacity(json_frames.len());
+    let mut mostly_unseen = Vec::new();
     for (i, fr) in json_frames.iter().enumerate() {
         let bad = |what: &str| SplatError::file(path, format!("frames[{i}]: {what}"));
         // A frame's own intrinsics override the file's, as in nerfstudio.
@@ -845,12 +846,16 @@ fn transforms_json_frames(
                 })
                 .transpose()
         };
+        let (cx, cy) = (
+            number("cx")?.unwrap_or(w / 2.0),
+            number("cy")?.unwrap_or(h / 2.0),
+        );
         frames.push(PhotoFrame {
             viewmat,
             fl_x,
             fl_y,
-            cx: number("cx")?.unwrap_or(w / 2.0),
-            cy: number("cy")?.unwrap_or(h / 2.0),
+            cx,
+            cy,
             image_path,
             mask_path: file("mask_path")?,
             depth_path: file("depth_file_path")?,
@@ -858,6 +863,23 @@ fn transforms_json_frames(
             stated_size,
             distortion,
         });
+        if let Some(d) = &distortion {
+            let share = Undistortion::unseen_share(d, [fl_x, fl_y, cx, cy], w as u32, h as u32);
+            if share > 0.5 {
+                mostly_unseen.push((i, share));
+            }
+        }
+    }
+    // Most likely a calibration for another image size or in other units:
+    // it trains, on what little is left, so say so once.
+    if let Some((first, share)) = mostly_unseen.first() {
+        tracing::warn!(
+            "{}: the lens distortion of {} of {} frames leaves over half of their pinhole image unseen (frames[{first}]: {:.0}%); check k1, k2, k3, k4, p1, p2 and the intrinsics",
+            path.display(),
+            mostly_unseen.len(),
+            frames.len(),
+            share * 100.0
+        );
     }
     Ok(frames)
 }
