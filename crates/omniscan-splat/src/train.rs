@@ -305,7 +305,14 @@ impl Adam {
     }
 }
 
-/// The visual-hull initialisation described in the module docs.
+/// The visual-hull initialisation described in the module docs: `count`
+/// points sampled in a cube around the origin (where a capture's gripper
+/// frame and most photo sets put the object), half as wide as 0.35 times the
+/// farthest camera's distance; or, where the cameras look at a point more
+/// than a quarter of that distance from the origin (a COLMAP world, whose
+/// origin is often the first camera), around that point. A point only one
+/// camera sees passes every other view's mask, so a cube away from the object
+/// is not empty but full of such points: the choice is made before sampling.
 pub fn initial_splats(
     views: &[View],
     count: usize,
@@ -315,17 +322,84 @@ pub fn initial_splats(
     if views.is_empty() {
         return Err(SplatError::Invalid("no training views".into()));
     }
-    // The object is near the gripper frame's origin; its size bounds the search.
-    let mut radius = 0.0f32;
-    for v in views {
-        let c = v.camera.viewmat;
-        // Camera centre −Rᵀt.
-        let centre =
-            [0, 1, 2].map(|j| -(c[0][j] * c[0][3] + c[1][j] * c[1][3] + c[2][j] * c[2][3]));
-        radius = radius
-            .max((centre[0] * centre[0] + centre[1] * centre[1] + centre[2] * centre[2]).sqrt());
+    let origin = [0.0f32; 3];
+    let centre = match cameras_look_at(views) {
+        Some(p) if distance(p, origin) > 0.25 * farthest_camera(views, origin) => p,
+        _ => origin,
+    };
+    let half = 0.35 * farthest_camera(views, centre);
+    let (points, colours) = visual_hull(views, centre, half, count, seed);
+    if points.len() < 10 {
+        return Err(SplatError::Invalid(format!(
+            "the object masks agree on too little space to start from: check the masks and camera poses (the object was looked for within {half} of ({}, {}, {}): {}, within 0.35 times the farthest camera's distance)",
+            centre[0],
+            centre[1],
+            centre[2],
+            if centre == origin {
+                "the origin"
+            } else {
+                "the point the cameras look at"
+            }
+        )));
     }
-    let half = 0.35 * radius;
+    splats_from_points(&points, &colours, max_sh_degree)
+}
+
+fn distance(a: [f32; 3], b: [f32; 3]) -> f32 {
+    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+}
+
+/// A camera's centre, −Rᵀt.
+fn camera_centre(camera: &Camera<f32>) -> [f32; 3] {
+    let c = camera.viewmat;
+    [0, 1, 2].map(|j| -(c[0][j] * c[0][3] + c[1][j] * c[1][3] + c[2][j] * c[2][3]))
+}
+
+/// The distance from `centre` to the farthest camera.
+fn farthest_camera(views: &[View], centre: [f32; 3]) -> f32 {
+    views
+        .iter()
+        .map(|v| distance(camera_centre(&v.camera), centre))
+        .fold(0.0, f32::max)
+}
+
+/// The point nearest, in least squares, to every camera's optical axis: what
+/// an orbit of cameras looks at. `None` where the axes are close to parallel
+/// (cameras that all face one way fix no such point).
+fn cameras_look_at(views: &[View]) -> Option<[f32; 3]> {
+    let mut normal = nalgebra::Matrix3::<f64>::zeros();
+    let mut rhs = nalgebra::Vector3::<f64>::zeros();
+    for v in views {
+        let m = v.camera.viewmat;
+        // The optical axis is the camera's +z, the view matrix's third row.
+        let axis = nalgebra::Vector3::new(m[2][0] as f64, m[2][1] as f64, m[2][2] as f64)
+            .try_normalize(1e-12)?;
+        let centre = nalgebra::Vector3::from(camera_centre(&v.camera).map(f64::from));
+        let across = nalgebra::Matrix3::identity() - axis * axis.transpose();
+        normal += across;
+        rhs += across * centre;
+    }
+    // Each term's eigenvalues are 1, 1, 0 (0 along its axis): a smallest
+    // eigenvalue near 0 means every axis runs one way.
+    let smallest = normal.symmetric_eigenvalues().min();
+    if smallest < 0.05 * views.len() as f64 {
+        return None;
+    }
+    let p = normal.lu().solve(&rhs)?;
+    Some([p.x as f32, p.y as f32, p.z as f32])
+}
+
+/// Points sampled in the cube of half-width `half` around `centre`, kept
+/// where the views agree on the object (see the module docs), with their
+/// mean colour in the views that see them as object; at most `count`, after
+/// at most 400·`count` tries.
+fn visual_hull(
+    views: &[View],
+    centre: [f32; 3],
+    half: f32,
+    count: usize,
+    seed: u64,
+) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let project_point = |cam: &Camera<f32>, p: [f32; 3]| -> Option<(usize, usize)> {
         let v = cam.viewmat;
@@ -345,7 +419,8 @@ pub fn initial_splats(
     let mut tries = 0;
     while points.len() < count && tries < count * 400 {
         tries += 1;
-        let p = [0; 3].map(|_| (rng.random::<f32>() * 2.0 - 1.0) * half);
+        let offset = [0; 3].map(|_| (rng.random::<f32>() * 2.0 - 1.0) * half);
+        let p = [0, 1, 2].map(|k| centre[k] + offset[k]);
         let mut inside = true;
         let mut seen = 0;
         let mut in_image = 0;
@@ -383,10 +458,7 @@ pub fn initial_splats(
             colours.push(colour.map(|c| c / seen as f32));
         }
     }
-    if points.len() < 10 {
-        return Err(SplatError::Invalid("the object masks agree on too little space to start from: check the masks and camera poses (the object is looked for around the origin, within 0.35 times the farthest camera's distance from it)".into()));
-    }
-    splats_from_points(&points, &colours, max_sh_degree)
+    (points, colours)
 }
 
 /// Initial splats at `points` (3DGS's initialisation from a point cloud):
@@ -1252,6 +1324,102 @@ mod tests {
             })
             .collect();
         (views, start)
+    }
+
+    /// 16 views of a ball of radius 0.1 at `centre`, from cameras on two
+    /// rings of radius 1 around it, each looking at it; masks only.
+    fn ball_views(centre: [f32; 3]) -> Vec<View> {
+        let (width, height, focal) = (40u32, 30u32, 40.0f32);
+        (0..16)
+            .map(|i| {
+                let azimuth = i as f32 * std::f32::consts::TAU / 8.0;
+                let elevation: f32 = if i < 8 { 0.3 } else { -0.4 };
+                let position = nalgebra::Vector3::new(
+                    centre[0] + elevation.cos() * azimuth.cos(),
+                    centre[1] + elevation.cos() * azimuth.sin(),
+                    centre[2] + elevation.sin(),
+                );
+                let target = nalgebra::Vector3::from(centre);
+                let forward = (target - position).normalize();
+                let right = forward.cross(&nalgebra::Vector3::z()).normalize();
+                let down = forward.cross(&right);
+                let mut viewmat = [[0.0f32; 4]; 4];
+                for (r, axis) in [right, down, forward].iter().enumerate() {
+                    viewmat[r] = [axis.x, axis.y, axis.z, -axis.dot(&position)];
+                }
+                viewmat[3][3] = 1.0;
+                // A pixel is on the ball where its ray passes within 0.1 of the centre.
+                let object = (0..width * height)
+                    .map(|p| {
+                        let (u, v) = ((p % width) as f32 + 0.5, (p / width) as f32 + 0.5);
+                        let ray = (forward
+                            + right * ((u - width as f32 / 2.0) / focal)
+                            + down * ((v - height as f32 / 2.0) / focal))
+                            .normalize();
+                        let to_centre = target - position;
+                        let miss = (to_centre - ray * to_centre.dot(&ray)).norm();
+                        f32::from(u8::from(miss < 0.1))
+                    })
+                    .collect();
+                View {
+                    camera: Camera {
+                        viewmat,
+                        fx: focal,
+                        fy: focal,
+                        cx: width as f32 / 2.0,
+                        cy: height as f32 / 2.0,
+                        width,
+                        height,
+                        near: 0.01,
+                        far: 100.0,
+                    },
+                    image: vec![[0.5; 3]; (width * height) as usize],
+                    object,
+                    excluded: vec![0.0; (width * height) as usize],
+                    depth: Vec::new(),
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_visual_hull_is_found_where_the_cameras_look() {
+        for centre in [[0.0f32; 3], [3.0, -2.0, 1.0]] {
+            let views = ball_views(centre);
+            let looked_at = cameras_look_at(&views).unwrap();
+            assert!(distance(looked_at, centre) < 1e-4, "{looked_at:?}");
+            let splats = initial_splats(&views, 300, 0, 7).unwrap();
+            assert_eq!(splats.means.len(), 300, "{centre:?}");
+            // Every point within the ball, give or take the hull's slack.
+            let farthest = splats
+                .means
+                .iter()
+                .map(|&m| distance(m, centre))
+                .fold(0.0, f32::max);
+            assert!(farthest < 0.16, "{centre:?}: {farthest}");
+        }
+        // Cameras that all face one way fix no point.
+        let mut parallel = ball_views([0.0; 3]);
+        for v in &mut parallel {
+            v.camera.viewmat = parallel_camera(v.camera.viewmat);
+        }
+        assert_eq!(cameras_look_at(&parallel), None);
+    }
+
+    /// A camera at the same place as `viewmat`'s, facing +y.
+    fn parallel_camera(viewmat: [[f32; 4]; 4]) -> [[f32; 4]; 4] {
+        let c = viewmat;
+        let position =
+            [0, 1, 2].map(|j| -(c[0][j] * c[0][3] + c[1][j] * c[1][3] + c[2][j] * c[2][3]));
+        let rows = [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]];
+        let mut m = [[0.0f32; 4]; 4];
+        for r in 0..3 {
+            let t =
+                -(rows[r][0] * position[0] + rows[r][1] * position[1] + rows[r][2] * position[2]);
+            m[r] = [rows[r][0], rows[r][1], rows[r][2], t];
+        }
+        m[3][3] = 1.0;
+        m
     }
 
     #[test]

@@ -391,9 +391,10 @@ impl ViewSource {
     /// (`camera_model` OPENCV, PINHOLE, SIMPLE_PINHOLE, RADIAL, SIMPLE_RADIAL;
     /// `k1`, `k2`, `k3`, `p1`, `p2`) and OPENCV_FISHEYE (`k1`…`k4`). A
     /// perspective `k4`, which nerfstudio refuses too, and other models
-    /// (panoramic, FISHEYE624) are refused by name. The object is looked for
-    /// around the world origin, where `export-nerfstudio` and Blender's sets
-    /// put it.
+    /// (panoramic, FISHEYE624) are refused by name. Without starting points
+    /// the object is looked for around the origin, where `export-nerfstudio`
+    /// and Blender's sets put it, or around the point the cameras look at
+    /// ([`initial_splats`](crate::train::initial_splats)).
     pub fn from_transforms_json(
         path: &std::path::Path,
         downscale: u32,

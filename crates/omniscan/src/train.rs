@@ -85,7 +85,7 @@ pub enum DensificationArg {
 
 #[derive(clap::Args)]
 pub struct TrainArgs {
-    /// The capture directory, or a calibrated photo set: a nerfstudio transforms.json (or its directory; perspective or OPENCV_FISHEYE cameras, their lens distortion undone as the photos are read, the object near the origin, mask_path as the object mask, else the image's alpha, else the whole image), or a cameras.json (file_path, mask_path, fl_x, fl_y, cx, cy in OpenCV's pixel convention, camera_to_world_opencv per frame). A frame's w, h, when given, must be its image's size, since the intrinsics are in its pixels.
+    /// The capture directory, or a calibrated photo set: a nerfstudio transforms.json (or its directory; perspective or OPENCV_FISHEYE cameras, their lens distortion undone as the photos are read, the object near the origin or where the cameras look, mask_path as the object mask, else the image's alpha, else the whole image), or a cameras.json (file_path, mask_path, fl_x, fl_y, cx, cy in OpenCV's pixel convention, camera_to_world_opencv per frame). A frame's w, h, when given, must be its image's size, since the intrinsics are in its pixels.
     pub capture: PathBuf,
     #[arg(long, value_enum, default_value = "left")]
     pub arm: ArmSet,
