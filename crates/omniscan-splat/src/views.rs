@@ -277,6 +277,8 @@ struct PhotoFrame {
     stated_size: [serde_json::Value; 2],
     /// The lens's distortion, undone as the view is read; `None` for a pinhole.
     distortion: Option<Distortion>,
+    /// The far plane, in the set's units ([`far_plane`]).
+    far: f32,
 }
 
 /// Reads and parses a JSON file, naming it in any error.
@@ -434,6 +436,11 @@ impl ViewSource {
         let f = downscale_factor(downscale)?;
         if frames.is_empty() {
             return Err(SplatError::file(path, "no frames"));
+        }
+        let mut frames = frames;
+        let far = far_plane(&frames);
+        for frame in &mut frames {
+            frame.far = far;
         }
         Ok(ViewSource {
             frames: Frames::Photos {
@@ -714,6 +721,7 @@ fn cameras_json_frames(
             gripper_mask_path: None,
             stated_size: [fr["w"].clone(), fr["h"].clone()],
             distortion: None,
+            far: DEFAULT_FAR,
         });
     }
     Ok(frames)
@@ -863,6 +871,7 @@ fn transforms_json_frames(
             gripper_mask_path: file("gripper_mask_path")?,
             stated_size,
             distortion,
+            far: DEFAULT_FAR,
         });
         if let Some(d) = &distortion {
             let share = Undistortion::unseen_share(d, [fl_x, fl_y, cx, cy], w as u32, h as u32);
@@ -974,6 +983,35 @@ fn load_capture_view(
     })
 }
 
+/// The far plane of captures and of photo sets in metres or similar units.
+const DEFAULT_FAR: f32 = 100.0;
+
+/// A photo set's far plane: [`DEFAULT_FAR`], or ten times the spread of its
+/// camera centres where that is more. A COLMAP world has no fixed unit: one
+/// in millimetres puts the object hundreds of units away, past a far plane
+/// of 100, and nothing would render.
+fn far_plane(frames: &[PhotoFrame]) -> f32 {
+    let centres: Vec<[f32; 3]> = frames
+        .iter()
+        .map(|f| {
+            let c = f.viewmat;
+            [0, 1, 2].map(|j| -(c[0][j] * c[0][3] + c[1][j] * c[1][3] + c[2][j] * c[2][3]))
+        })
+        .collect();
+    let spread = (0..3)
+        .map(|k| {
+            let (low, high) = centres
+                .iter()
+                .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), c| {
+                    (lo.min(c[k]), hi.max(c[k]))
+                });
+            (high - low).powi(2)
+        })
+        .sum::<f32>()
+        .sqrt();
+    (10.0 * spread).max(DEFAULT_FAR)
+}
+
 /// A photo frame's camera, its `width` x `height` image shrunk by `f`.
 fn photo_camera(frame: &PhotoFrame, width: u32, height: u32, f: u32) -> Camera<f32> {
     Camera {
@@ -985,7 +1023,7 @@ fn photo_camera(frame: &PhotoFrame, width: u32, height: u32, f: u32) -> Camera<f
         width: width / f,
         height: height / f,
         near: 0.01,
-        far: 100.0,
+        far: frame.far,
     }
 }
 
@@ -1652,6 +1690,25 @@ mod tests {
                 .any(|(di, dj)| view.excluded[(j + dj) * 64 + i + di] == 1.0);
             assert_eq!(e, f32::from(u8::from(any)), "shrunk pixel {p}");
         }
+    }
+
+    #[test]
+    fn a_photo_set_in_millimetres_sees_as_far_as_its_cameras_spread() {
+        let (dir, file) = one_nerfstudio_set();
+        let path = dir.path().join("transforms.json");
+        let far_planes = |spacing: f64| {
+            let mut set = file.clone();
+            let mut second = file["frames"][0].clone();
+            second["transform_matrix"][0][3] = spacing.into();
+            set["frames"] = serde_json::json!([file["frames"][0], second]);
+            std::fs::write(&path, set.to_string()).unwrap();
+            let source = ViewSource::from_photo_set(&path, 1).unwrap();
+            [0, 1].map(|i| source.camera(i).unwrap().1.far)
+        };
+        // Cameras 2 units apart keep the usual plane; 300 apart (a world in
+        // millimetres) see ten times that far.
+        assert_eq!(far_planes(2.0), [100.0, 100.0]);
+        assert_eq!(far_planes(300.0), [3000.0, 3000.0]);
     }
 
     #[test]

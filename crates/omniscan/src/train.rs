@@ -175,10 +175,18 @@ pub fn run(args: TrainArgs) -> Result<()> {
             (Some(psnr), Some(masked)) => {
                 format!("held-out views: PSNR {psnr:.2} dB, masked PSNR {masked:.2} dB")
             }
+            // Views to score, but no object pixel the model covers: say so
+            // plainly, it is a failed run, not a missing figure.
+            (Some(psnr), None) => format!(
+                "held-out views: PSNR {psnr:.2} dB, masked PSNR none (the model covers none of their object pixels)"
+            ),
             _ => "no held-out views to score".to_string(),
         };
         let scores = match report["train"]["psnr_masked"].as_f64() {
             Some(masked) => format!("{held_out}; training views: masked PSNR {masked:.2} dB"),
+            None if report["train"]["views"].as_u64().is_some_and(|n| n > 0) => format!(
+                "{held_out}; training views: masked PSNR none (the model covers none of their object pixels)"
+            ),
             None => held_out,
         };
         println!(
