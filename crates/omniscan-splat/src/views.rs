@@ -1089,27 +1089,28 @@ fn load_photo(
     use omniscan_core::image_io::{Mask, read_depth, read_mask, read_rgb, read_rgb_and_alpha};
     let bad = |what: &str| SplatError::file(cameras_json, format!("frames[{index}]: {what}"));
     let image_path = &frame.image_path;
+    // A frame's mask or depth map at `path`, found to be `found`, must be its image's size.
+    let companion = |what: &str, path: &std::path::Path, found, image_size| {
+        check_companion_size(cameras_json, index, frame, what, path, found, image_size)
+    };
+    // Values from `mask_threshold` up are in (255), the rest out (0).
+    let binary = |mut mask: Mask| {
+        for v in &mut mask.data {
+            *v = if *v >= mask_threshold { 255 } else { 0 };
+        }
+        mask
+    };
     let (rgb, mask) = match &frame.mask_path {
         Some(mask_path) => {
             let rgb = read_rgb(image_path)?;
-            let mut mask = read_mask(mask_path)?;
-            if mask_threshold != 128 {
-                for v in &mut mask.data {
-                    *v = if *v >= mask_threshold { 255 } else { 0 };
-                }
-            }
-            let size = (mask.width, mask.height);
-            let image_size = (rgb.width, rgb.height);
-            check_companion_size(
-                cameras_json,
-                index,
-                frame,
+            let mask = read_mask(mask_path)?;
+            companion(
                 "mask",
                 mask_path,
-                size,
-                image_size,
+                (mask.width, mask.height),
+                (rgb.width, rgb.height),
             )?;
-            (rgb, mask)
+            (rgb, binary(mask))
         }
         None => {
             let (rgb, alpha) = read_rgb_and_alpha(image_path)?;
@@ -1131,42 +1132,25 @@ fn load_photo(
             image_path.display()
         )));
     }
+    let image_size = (rgb.width, rgb.height);
     let depth = match &frame.depth_path {
-        Some(depth_path) => {
-            let depth = read_depth(depth_path)?;
-            let size = (depth.width, depth.height);
-            let image_size = (rgb.width, rgb.height);
-            check_companion_size(
-                cameras_json,
-                index,
-                frame,
-                "depth map",
-                depth_path,
-                size,
-                image_size,
-            )?;
+        Some(path) => {
+            let depth = read_depth(path)?;
+            companion("depth map", path, (depth.width, depth.height), image_size)?;
             Some(depth)
         }
         None => None,
     };
     let gripper = match &frame.gripper_mask_path {
         Some(path) => {
-            let mut gripper = read_mask(path)?;
-            for v in &mut gripper.data {
-                *v = if *v >= mask_threshold { 255 } else { 0 };
-            }
-            let size = (gripper.width, gripper.height);
-            let image_size = (rgb.width, rgb.height);
-            check_companion_size(
-                cameras_json,
-                index,
-                frame,
+            let gripper = read_mask(path)?;
+            companion(
                 "gripper mask",
                 path,
-                size,
+                (gripper.width, gripper.height),
                 image_size,
             )?;
-            Some(gripper)
+            Some(binary(gripper))
         }
         None => None,
     };
