@@ -48,7 +48,19 @@ pub struct Camera<F> {
     pub far: F,
 }
 
+/// The world position of the camera whose world-to-camera matrix is
+/// `viewmat`: −Rᵀt.
+pub fn viewmat_centre<F: Real>(viewmat: &[[F; 4]; 4]) -> [F; 3] {
+    let v = viewmat;
+    [0, 1, 2].map(|j| -(v[0][j] * v[0][3] + v[1][j] * v[1][3] + v[2][j] * v[2][3]))
+}
+
 impl<F: Real> Camera<F> {
+    /// The camera's position in the world.
+    pub fn centre(&self) -> [F; 3] {
+        viewmat_centre(&self.viewmat)
+    }
+
     /// A camera at `camera_to_world` (OpenCV axes) with the given intrinsics.
     pub fn from_pose(
         camera_to_world: &omniscan_core::Pose,
@@ -95,9 +107,7 @@ impl<F: Real> ViewGeometry<F> {
             [v[2][0], v[2][1], v[2][2]],
         ];
         let trans = [v[0][3], v[1][3], v[2][3]];
-        // Camera centre in world coordinates, −Rᵀt.
-        let campos = [0, 1, 2]
-            .map(|j| -(rot[0][j] * trans[0] + rot[1][j] * trans[1] + rot[2][j] * trans[2]));
+        let campos = camera.centre();
         let (w, h) = (F::c(camera.width as f64), F::c(camera.height as f64));
         let tan_x = F::c(0.5) * w / camera.fx;
         let tan_y = F::c(0.5) * h / camera.fy;

@@ -349,17 +349,11 @@ fn distance(a: [f32; 3], b: [f32; 3]) -> f32 {
     ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
 }
 
-/// A camera's centre, −Rᵀt.
-fn camera_centre(camera: &Camera<f32>) -> [f32; 3] {
-    let c = camera.viewmat;
-    [0, 1, 2].map(|j| -(c[0][j] * c[0][3] + c[1][j] * c[1][3] + c[2][j] * c[2][3]))
-}
-
 /// The distance from `centre` to the farthest camera.
 fn farthest_camera(views: &[View], centre: [f32; 3]) -> f32 {
     views
         .iter()
-        .map(|v| distance(camera_centre(&v.camera), centre))
+        .map(|v| distance(v.camera.centre(), centre))
         .fold(0.0, f32::max)
 }
 
@@ -374,7 +368,7 @@ fn cameras_look_at(views: &[View]) -> Option<[f32; 3]> {
         // The optical axis is the camera's +z, the view matrix's third row.
         let axis = nalgebra::Vector3::new(m[2][0] as f64, m[2][1] as f64, m[2][2] as f64)
             .try_normalize(1e-12)?;
-        let centre = nalgebra::Vector3::from(camera_centre(&v.camera).map(f64::from));
+        let centre = nalgebra::Vector3::from(v.camera.centre().map(f64::from));
         let across = nalgebra::Matrix3::identity() - axis * axis.transpose();
         normal += across;
         rhs += across * centre;
@@ -1408,9 +1402,7 @@ mod tests {
 
     /// A camera at the same place as `viewmat`'s, facing +y.
     fn parallel_camera(viewmat: [[f32; 4]; 4]) -> [[f32; 4]; 4] {
-        let c = viewmat;
-        let position =
-            [0, 1, 2].map(|j| -(c[0][j] * c[0][3] + c[1][j] * c[1][3] + c[2][j] * c[2][3]));
+        let position = crate::raster::viewmat_centre(&viewmat);
         let rows = [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]];
         let mut m = [[0.0f32; 4]; 4];
         for r in 0..3 {

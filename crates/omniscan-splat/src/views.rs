@@ -195,6 +195,8 @@ enum Frames {
         frames: Vec<PhotoFrame>,
         /// nerfstudio's `ply_file_path`: the set's own starting points.
         initial_points: Option<std::path::PathBuf>,
+        /// The far plane of every camera, in the set's units ([`far_plane`]).
+        far: f32,
         format: PhotoSetFormat,
     },
 }
@@ -277,8 +279,6 @@ struct PhotoFrame {
     stated_size: [serde_json::Value; 2],
     /// The lens's distortion, undone as the view is read; `None` for a pinhole.
     distortion: Option<Distortion>,
-    /// The far plane, in the set's units ([`far_plane`]).
-    far: f32,
 }
 
 /// Reads and parses a JSON file, naming it in any error.
@@ -437,14 +437,10 @@ impl ViewSource {
         if frames.is_empty() {
             return Err(SplatError::file(path, "no frames"));
         }
-        let mut frames = frames;
-        let far = far_plane(&frames);
-        for frame in &mut frames {
-            frame.far = far;
-        }
         Ok(ViewSource {
             frames: Frames::Photos {
                 cameras_json: path.to_path_buf(),
+                far: far_plane(&frames),
                 frames,
                 initial_points,
                 format,
@@ -528,6 +524,7 @@ impl ViewSource {
             Frames::Photos {
                 cameras_json,
                 frames,
+                far,
                 ..
             } => {
                 let frame = &frames[index];
@@ -535,7 +532,7 @@ impl ViewSource {
                 check_stated_size(cameras_json, index, frame, width, height)?;
                 Ok((
                     stem(&frame.image_path),
-                    photo_camera(frame, width, height, self.downscale),
+                    photo_camera(frame, width, height, self.downscale, *far),
                 ))
             }
         }
@@ -554,6 +551,7 @@ impl ViewSource {
             frames,
             initial_points,
             format,
+            ..
         } = &self.frames
         else {
             return Ok(None);
@@ -655,6 +653,7 @@ impl ViewSource {
                 cameras_json,
                 frames,
                 format,
+                far,
                 ..
             } => load_photo(
                 cameras_json,
@@ -662,6 +661,7 @@ impl ViewSource {
                 &frames[index],
                 format.mask_threshold(),
                 self.downscale,
+                *far,
             ),
         }
     }
@@ -721,7 +721,6 @@ fn cameras_json_frames(
             gripper_mask_path: None,
             stated_size: [fr["w"].clone(), fr["h"].clone()],
             distortion: None,
-            far: DEFAULT_FAR,
         });
     }
     Ok(frames)
@@ -768,9 +767,14 @@ fn transforms_json_frames(
                 .map(Some)
                 .ok_or_else(|| bad(&format!("`{k}` must be a finite number, got {v}"))),
         };
-        let coefficient = |k: &str| number(k).map(|v| v.unwrap_or(0.0));
-        let [k1, k2, k3, k4, p1, p2] = ["k1", "k2", "k3", "k4", "p1", "p2"].map(coefficient);
-        let [k1, k2, k3, k4, p1, p2] = [k1?, k2?, k3?, k4?, p1?, p2?];
+        let mut coefficients = [0.0; 6];
+        for (c, k) in coefficients
+            .iter_mut()
+            .zip(["k1", "k2", "k3", "k4", "p1", "p2"])
+        {
+            *c = number(k)?.unwrap_or(0.0);
+        }
+        let [k1, k2, k3, k4, p1, p2] = coefficients;
         let model = match value("camera_model") {
             None => "OPENCV",
             Some(m) => m.as_str().unwrap_or(""),
@@ -871,7 +875,6 @@ fn transforms_json_frames(
             gripper_mask_path: file("gripper_mask_path")?,
             stated_size,
             distortion,
-            far: DEFAULT_FAR,
         });
         if let Some(d) = &distortion {
             let share = Undistortion::unseen_share(d, [fl_x, fl_y, cx, cy], w as u32, h as u32);
@@ -993,10 +996,7 @@ const DEFAULT_FAR: f32 = 100.0;
 fn far_plane(frames: &[PhotoFrame]) -> f32 {
     let centres: Vec<[f32; 3]> = frames
         .iter()
-        .map(|f| {
-            let c = f.viewmat;
-            [0, 1, 2].map(|j| -(c[0][j] * c[0][3] + c[1][j] * c[1][3] + c[2][j] * c[2][3]))
-        })
+        .map(|f| crate::raster::viewmat_centre(&f.viewmat))
         .collect();
     let spread = (0..3)
         .map(|k| {
@@ -1013,7 +1013,7 @@ fn far_plane(frames: &[PhotoFrame]) -> f32 {
 }
 
 /// A photo frame's camera, its `width` x `height` image shrunk by `f`.
-fn photo_camera(frame: &PhotoFrame, width: u32, height: u32, f: u32) -> Camera<f32> {
+fn photo_camera(frame: &PhotoFrame, width: u32, height: u32, f: u32, far: f32) -> Camera<f32> {
     Camera {
         viewmat: frame.viewmat,
         fx: (frame.fl_x / f as f64) as f32,
@@ -1023,7 +1023,7 @@ fn photo_camera(frame: &PhotoFrame, width: u32, height: u32, f: u32) -> Camera<f
         width: width / f,
         height: height / f,
         near: 0.01,
-        far: frame.far,
+        far,
     }
 }
 
@@ -1078,13 +1078,14 @@ fn check_companion_size(
 }
 
 /// A frame of a photo set, its mask's values from `mask_threshold` up
-/// counting as object.
+/// counting as object, its camera seeing as far as `far`.
 fn load_photo(
     cameras_json: &std::path::Path,
     index: usize,
     frame: &PhotoFrame,
     mask_threshold: u8,
     f: u32,
+    far: f32,
 ) -> Result<View, SplatError> {
     use omniscan_core::image_io::{Mask, read_depth, read_mask, read_rgb, read_rgb_and_alpha};
     let bad = |what: &str| SplatError::file(cameras_json, format!("frames[{index}]: {what}"));
@@ -1154,7 +1155,7 @@ fn load_photo(
         }
         None => None,
     };
-    let camera = photo_camera(frame, rgb.width, rgb.height, f);
+    let camera = photo_camera(frame, rgb.width, rgb.height, f, far);
     let Some(distortion) = &frame.distortion else {
         let (image, object) = shrink_object(&rgb, &mask, f);
         return Ok(View {

@@ -163,6 +163,9 @@ pub struct TrainArgs {
     pub json: bool,
 }
 
+/// The summary's words for views whose object pixels the model never covers.
+const NO_MASKED_PSNR: &str = "masked PSNR none (the model covers none of their object pixels)";
+
 pub fn run(args: TrainArgs) -> Result<()> {
     let report = train_capture(&args)?;
     if args.json {
@@ -177,16 +180,14 @@ pub fn run(args: TrainArgs) -> Result<()> {
             }
             // Views to score, but no object pixel the model covers: say so
             // plainly, it is a failed run, not a missing figure.
-            (Some(psnr), None) => format!(
-                "held-out views: PSNR {psnr:.2} dB, masked PSNR none (the model covers none of their object pixels)"
-            ),
+            (Some(psnr), None) => format!("held-out views: PSNR {psnr:.2} dB, {NO_MASKED_PSNR}"),
             _ => "no held-out views to score".to_string(),
         };
         let scores = match report["train"]["psnr_masked"].as_f64() {
             Some(masked) => format!("{held_out}; training views: masked PSNR {masked:.2} dB"),
-            None if report["train"]["views"].as_u64().is_some_and(|n| n > 0) => format!(
-                "{held_out}; training views: masked PSNR none (the model covers none of their object pixels)"
-            ),
+            None if report["train"]["views"].as_u64().is_some_and(|n| n > 0) => {
+                format!("{held_out}; training views: {NO_MASKED_PSNR}")
+            }
             None => held_out,
         };
         println!(
