@@ -23,6 +23,7 @@ pub mod metrics;
 pub mod model;
 pub mod offset;
 pub mod orbit;
+pub mod packed;
 pub mod ply;
 pub mod raster;
 pub mod sh;

@@ -32,7 +32,7 @@ use crate::gpu::training::{HostState, LossTarget, McmcStep, StepRates};
 use crate::metrics::{ImageView, psnr, weighted_ssim_and_gradient};
 use crate::raster::{Camera, bin_tiles, project, rasterize_binned};
 use crate::sh::{C0, coefficients};
-use crate::views::View;
+use crate::views::{TrainingView, View};
 use crate::{SplatError, Splats};
 
 /// Training settings.
@@ -314,7 +314,7 @@ impl Adam {
 /// camera sees passes every other view's mask, so a cube away from the object
 /// is not empty but full of such points: the choice is made before sampling.
 pub fn initial_splats(
-    views: &[View],
+    views: &[impl TrainingView],
     count: usize,
     max_sh_degree: usize,
     seed: u64,
@@ -350,25 +350,25 @@ fn distance(a: [f32; 3], b: [f32; 3]) -> f32 {
 }
 
 /// The distance from `centre` to the farthest camera.
-fn farthest_camera(views: &[View], centre: [f32; 3]) -> f32 {
+fn farthest_camera(views: &[impl TrainingView], centre: [f32; 3]) -> f32 {
     views
         .iter()
-        .map(|v| distance(v.camera.centre(), centre))
+        .map(|v| distance(v.camera().centre(), centre))
         .fold(0.0, f32::max)
 }
 
 /// The point nearest, in least squares, to every camera's optical axis: what
 /// an orbit of cameras looks at. `None` where the axes are close to parallel
 /// (cameras that all face one way fix no such point).
-fn cameras_look_at(views: &[View]) -> Option<[f32; 3]> {
+fn cameras_look_at(views: &[impl TrainingView]) -> Option<[f32; 3]> {
     let mut normal = nalgebra::Matrix3::<f64>::zeros();
     let mut rhs = nalgebra::Vector3::<f64>::zeros();
     for v in views {
-        let m = v.camera.viewmat;
+        let m = v.camera().viewmat;
         // The optical axis is the camera's +z, the view matrix's third row.
         let axis = nalgebra::Vector3::new(m[2][0] as f64, m[2][1] as f64, m[2][2] as f64)
             .try_normalize(1e-12)?;
-        let centre = nalgebra::Vector3::from(v.camera.centre().map(f64::from));
+        let centre = nalgebra::Vector3::from(v.camera().centre().map(f64::from));
         let across = nalgebra::Matrix3::identity() - axis * axis.transpose();
         normal += across;
         rhs += across * centre;
@@ -388,7 +388,7 @@ fn cameras_look_at(views: &[View]) -> Option<[f32; 3]> {
 /// mean colour in the views that see them as object; at most `count`, after
 /// at most 400·`count` tries.
 fn visual_hull(
-    views: &[View],
+    views: &[impl TrainingView],
     centre: [f32; 3],
     half: f32,
     count: usize,
@@ -420,28 +420,29 @@ fn visual_hull(
         let mut in_image = 0;
         let mut colour = [0.0f32; 3];
         for v in views {
-            if let Some((u, w)) = project_point(&v.camera, p) {
-                let i = w * v.camera.width as usize + u;
+            let camera = v.camera();
+            if let Some((u, w)) = project_point(camera, p) {
+                let pixel = v.pixel(w * camera.width as usize + u);
                 in_image += 1;
-                if v.object[i] < 0.5 && v.excluded[i] < 0.5 {
+                if pixel.object < 0.5 && pixel.excluded < 0.5 {
                     inside = false;
                     break;
                 }
                 // Depth carves free space: a point clearly in front of the
                 // observed surface is empty (the gripper's volume would
                 // otherwise survive the masks, which always cover it).
-                if !v.depth.is_empty() && v.depth[i] > 0.0 {
-                    let vm = v.camera.viewmat;
+                if pixel.depth > 0.0 {
+                    let vm = camera.viewmat;
                     let z = vm[2][0] * p[0] + vm[2][1] * p[1] + vm[2][2] * p[2] + vm[2][3];
-                    if z < v.depth[i] * 0.97 {
+                    if z < pixel.depth * 0.97 {
                         inside = false;
                         break;
                     }
                 }
-                if v.object[i] >= 0.5 {
+                if pixel.object >= 0.5 {
                     seen += 1;
                     for c in 0..3 {
-                        colour[c] += v.image[i][c];
+                        colour[c] += pixel.colour[c];
                     }
                 }
             }
@@ -593,7 +594,7 @@ pub fn step_loss(
 /// parameters stay on the device, where rendering, gradients and Adam run,
 /// and the loss and densification run on the CPU.
 pub fn train(
-    views: &[View],
+    views: &[impl TrainingView],
     s: Splats,
     config: &TrainConfig,
     renderer: &Renderer,
@@ -642,11 +643,11 @@ pub struct TrainState {
 /// views, and a digest of their cameras, so that a resumed run cannot go on
 /// with views that moved (a merged capture's right arm under another
 /// right-to-left transform, an edited capture).
-fn fingerprint(config: &TrainConfig, views: &[View]) -> String {
+fn fingerprint(config: &TrainConfig, views: &[impl TrainingView]) -> String {
     let mut digest = omniscan_core::digest::Digest::default();
     let mut add = |x: u32| digest.add(&x.to_le_bytes());
     for view in views {
-        let c = &view.camera;
+        let c = view.camera();
         c.viewmat.iter().flatten().for_each(|v| add(v.to_bits()));
         [c.fx, c.fy, c.cx, c.cy, c.near, c.far]
             .iter()
@@ -659,7 +660,7 @@ fn fingerprint(config: &TrainConfig, views: &[View]) -> String {
 
 /// Training with optional resumption and checkpoints (see [`train`]).
 pub fn train_resumable(
-    views: &[View],
+    views: &[impl TrainingView],
     start: Start,
     config: &TrainConfig,
     renderer: &Renderer,
@@ -763,7 +764,7 @@ pub fn train_resumable(
                 order.swap(i, rng.random_range(0..=i));
             }
         }
-        let view = &views[order.pop().unwrap()];
+        let view = views[order.pop().unwrap()].pixels();
         let degree = (step / config.sh_interval.max(1))
             .min(config.max_sh_degree)
             .min(s.sh_degree);
@@ -822,7 +823,7 @@ pub fn train_resumable(
                 d_rgb,
                 d_alpha,
                 psnr: image_psnr,
-            } = step_loss(view, &r, background, config);
+            } = step_loss(&view, &r, background, config);
             let grads = backward_binned(
                 &g,
                 &view.camera,
@@ -1078,14 +1079,14 @@ fn densify(
 /// accumulation minus gripper (the paper's evaluation), averaged over views.
 pub fn evaluate(
     model: &Splats,
-    views: &[View],
+    views: &[impl TrainingView],
     lpips: Option<&crate::lpips::Lpips>,
 ) -> Result<serde_json::Value, SplatError> {
     evaluate_views(
         model,
         &Renderer::Cpu,
         views.len(),
-        |i| Ok(std::borrow::Cow::Borrowed(&views[i])),
+        |i| Ok(views[i].pixels()),
         lpips,
         |_, _, _| Ok(()),
     )
@@ -1249,7 +1250,7 @@ mod tests {
     }
 
     /// Trains on the CPU without progress reports.
-    fn fit(views: &[View], start: Splats, config: &TrainConfig) -> Splats {
+    fn fit(views: &[impl TrainingView], start: Splats, config: &TrainConfig) -> Splats {
         train(views, start, config, &Renderer::Cpu, &mut |_, _, _| {}).unwrap()
     }
 
@@ -1318,6 +1319,67 @@ mod tests {
             })
             .collect();
         (views, start)
+    }
+
+    /// Training and the visual hull read a packed view ([`crate::packed`])
+    /// exactly as its floats: the same start and the same model, to the bit.
+    #[test]
+    fn packed_views_train_as_their_floats_do() {
+        use crate::packed::PackedView;
+        use omniscan_core::image_io::{Mask, RgbImage};
+        let (views, start) = problem();
+        let byte = |x: f32| (x.clamp(0.0, 1.0) * 255.0).round() as u8;
+        for block in [1u32, 2] {
+            let packed: Vec<PackedView> = views
+                .iter()
+                .map(|v| {
+                    let (width, height) = (v.camera.width, v.camera.height);
+                    let camera = Camera {
+                        fx: v.camera.fx / block as f32,
+                        fy: v.camera.fy / block as f32,
+                        cx: v.camera.cx / block as f32,
+                        cy: v.camera.cy / block as f32,
+                        width: width / block,
+                        height: height / block,
+                        ..v.camera
+                    };
+                    let rgb = RgbImage {
+                        width,
+                        height,
+                        data: v.image.iter().flat_map(|c| c.map(byte)).collect(),
+                    };
+                    let mask = |values: &[f32]| Mask {
+                        width,
+                        height,
+                        data: values.iter().map(|&m| byte(m)).collect(),
+                    };
+                    // The left quarter is excluded, as a gripper would be.
+                    let excluded: Vec<f32> = (0..v.object.len())
+                        .map(|i| f32::from(u8::from(i % (width as usize) < 12)))
+                        .collect();
+                    PackedView::shrink(
+                        camera,
+                        &rgb,
+                        &mask(&v.object),
+                        Some(&mask(&excluded)),
+                        None,
+                        block,
+                    )
+                })
+                .collect();
+            let floats: Vec<View> = packed.iter().map(PackedView::unpack).collect();
+            let config = TrainConfig::with_steps(30);
+            assert_eq!(
+                fit(&packed, start.clone(), &config),
+                fit(&floats, start.clone(), &config),
+                "block {block}"
+            );
+            assert_eq!(
+                initial_splats(&packed, 300, 1, 5).unwrap(),
+                initial_splats(&floats, 300, 1, 5).unwrap(),
+                "block {block}"
+            );
+        }
     }
 
     /// 16 views of a ball of radius 0.1 at `centre`, from cameras on two

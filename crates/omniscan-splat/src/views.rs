@@ -8,13 +8,15 @@
 //! reads the views it compares a few at a time and drops each once scored:
 //! holding all 200 full-size views of a capture took 1.7 GB). Frames decode
 //! on all threads; one after another, PNG decoding and shrinking were most of
-//! `eval`'s time and the first seconds of every `train`.
+//! `eval`'s time and the first seconds of every `train`. Training holds its
+//! views packed ([`crate::packed`]) and reads them through [`TrainingView`].
 
 use rayon::prelude::*;
 
 use omniscan_core::lens::{Distortion, Undistortion};
 
 use crate::SplatError;
+use crate::packed::PackedView;
 use crate::raster::Camera;
 
 /// One training image with its masks.
@@ -30,6 +32,43 @@ pub struct View {
     pub excluded: Vec<f32>,
     /// Sensor depth along the optical axis, metres, 0 where unknown; empty if the capture has none.
     pub depth: Vec<f32>,
+}
+
+/// What training reads of a view: its camera at any time, its pixels when a
+/// step needs them. A [`View`] lends its own; a [`PackedView`] is unpacked.
+pub trait TrainingView: Sync {
+    fn camera(&self) -> &Camera<f32>;
+    fn pixels(&self) -> std::borrow::Cow<'_, View>;
+    /// Pixel `i` alone, as [`pixels`](Self::pixels) would give it.
+    fn pixel(&self, i: usize) -> crate::packed::Pixel;
+}
+
+impl TrainingView for View {
+    fn camera(&self) -> &Camera<f32> {
+        &self.camera
+    }
+
+    fn pixels(&self) -> std::borrow::Cow<'_, View> {
+        std::borrow::Cow::Borrowed(self)
+    }
+
+    fn pixel(&self, i: usize) -> crate::packed::Pixel {
+        View::pixel(self, i)
+    }
+}
+
+impl TrainingView for PackedView {
+    fn camera(&self) -> &Camera<f32> {
+        &self.camera
+    }
+
+    fn pixels(&self) -> std::borrow::Cow<'_, View> {
+        std::borrow::Cow::Owned(self.unpack())
+    }
+
+    fn pixel(&self, i: usize) -> crate::packed::Pixel {
+        PackedView::pixel(self, i)
+    }
 }
 
 /// Splits views into training and held-out ones: every `every`-th view is
@@ -79,101 +118,6 @@ fn downscale_factor(downscale: u32) -> Result<u32, SplatError> {
         ));
     }
     Ok(downscale)
-}
-
-/// A photo and its object mask shrunk by `f` (box filter): each pixel's
-/// object coverage, and its colour averaged over its object sub-pixels only
-/// (over all of them where it has none). Colour × coverage is then the
-/// object alone over black, the exact shrunk composite that training and
-/// evaluation compare renders with. Averaging the whole photo instead mixed
-/// the background behind the object's edge (DTU's white table beside dark
-/// steel) into every edge pixel's target, an error no render of the object
-/// can match.
-fn shrink_object(
-    rgb: &omniscan_core::image_io::RgbImage,
-    mask: &omniscan_core::image_io::Mask,
-    f: u32,
-) -> (Vec<[f32; 3]>, Vec<f32>) {
-    let (w, h, f) = (
-        (rgb.width / f) as usize,
-        (rgb.height / f) as usize,
-        f as usize,
-    );
-    let full_w = rgb.width as usize;
-    let mut image = vec![[0.0f32; 3]; w * h];
-    let mut coverage = vec![0.0f32; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let (mut all, mut object, mut inside) = ([0u32; 3], [0u32; 3], 0u32);
-            for dy in 0..f {
-                for dx in 0..f {
-                    let p = (y * f + dy) * full_w + x * f + dx;
-                    let is_object = mask.data[p] >= 128;
-                    inside += is_object as u32;
-                    for c in 0..3 {
-                        let v = rgb.data[p * 3 + c] as u32;
-                        all[c] += v;
-                        object[c] += v * is_object as u32;
-                    }
-                }
-            }
-            let o = y * w + x;
-            coverage[o] = inside as f32 / (f * f) as f32;
-            let (sum, count) = if inside > 0 {
-                (object, inside)
-            } else {
-                (all, (f * f) as u32)
-            };
-            image[o] = sum.map(|v| v as f32 / 255.0 / count as f32);
-        }
-    }
-    (image, coverage)
-}
-
-/// A mask shrunk by `f`: 1 where any pixel of the block is in it (a pixel
-/// partly on the gripper, or partly unseen, is left out of the loss whole),
-/// 0 elsewhere.
-fn shrink_any(mask: &omniscan_core::image_io::Mask, f: u32) -> Vec<f32> {
-    let (w, h, f) = (
-        (mask.width / f) as usize,
-        (mask.height / f) as usize,
-        f as usize,
-    );
-    let full_w = mask.width as usize;
-    (0..w * h)
-        .map(|o| {
-            let (x, y) = (o % w, o / w);
-            let any =
-                (0..f * f).any(|d| mask.data[(y * f + d / f) * full_w + x * f + d % f] >= 128);
-            f32::from(u8::from(any))
-        })
-        .collect()
-}
-
-/// A depth map in millimetres shrunk by `f` to metres: each block's nearest
-/// valid sample (0 where it has none).
-fn shrink_depth(depth: &omniscan_core::image_io::DepthMm, f: u32) -> Vec<f32> {
-    let (w, h, f) = (
-        (depth.width / f) as usize,
-        (depth.height / f) as usize,
-        f as usize,
-    );
-    let full_w = depth.width as usize;
-    let mut shrunk = vec![0.0f32; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let o = y * w + x;
-            for dy in 0..f {
-                for dx in 0..f {
-                    let z = depth.data[(y * f + dy) * full_w + x * f + dx] as f32 * 0.001;
-                    if z > 0.0 && (shrunk[o] == 0.0 || z < shrunk[o]) {
-                        shrunk[o] = z;
-                    }
-                }
-            }
-        }
-    }
-    shrunk
 }
 
 /// The views of a capture's view set or of a photo set, read on demand.
@@ -480,20 +424,31 @@ impl ViewSource {
     /// Reads the views at `indices` (each `< len()`), in that order, on all
     /// threads; the error is that of the first one that cannot be read.
     pub fn load_each(&self, indices: &[usize]) -> Result<Vec<View>, SplatError> {
-        self.load_each_reporting(indices, &|| {})
+        self.read_each(indices, &|| {}, |i| self.load(i))
     }
 
-    /// [`load_each`](Self::load_each), calling `read` after each view is read
-    /// (from any thread), for a progress bar.
-    pub fn load_each_reporting(
+    /// The views at `indices` packed, as training keeps them
+    /// ([`crate::packed`]): shrunk straight into their packed form, so no
+    /// view's floats are ever made while reading. `read` is called after
+    /// each view is read (from any thread), for a progress bar.
+    pub fn load_packed_each(
         &self,
         indices: &[usize],
         read: &(dyn Fn() + Sync),
-    ) -> Result<Vec<View>, SplatError> {
+    ) -> Result<Vec<PackedView>, SplatError> {
+        self.read_each(indices, read, |i| self.load_packed(i))
+    }
+
+    fn read_each<T: Send>(
+        &self,
+        indices: &[usize],
+        read: &(dyn Fn() + Sync),
+        one: impl Fn(usize) -> Result<T, SplatError> + Sync,
+    ) -> Result<Vec<T>, SplatError> {
         indices
             .par_iter()
             .map(|&i| {
-                let view = self.load(i);
+                let view = one(i);
                 read();
                 view
             })
@@ -645,6 +600,11 @@ impl ViewSource {
 
     /// Reads view `index` (`index < len()`).
     pub fn load(&self, index: usize) -> Result<View, SplatError> {
+        self.load_packed(index).map(|view| view.unpack())
+    }
+
+    /// Reads view `index` (`index < len()`) packed ([`crate::packed`]).
+    pub fn load_packed(&self, index: usize) -> Result<PackedView, SplatError> {
         match &self.frames {
             Frames::Capture { capture, views } => {
                 load_capture_view(capture, &views[index], self.downscale)
@@ -937,7 +897,7 @@ fn load_capture_view(
     capture: &omniscan_core::Capture,
     v: &omniscan_core::poses::CameraView,
     f: u32,
-) -> Result<View, SplatError> {
+) -> Result<PackedView, SplatError> {
     use omniscan_core::image_io::{read_mask, read_rgb};
     let frame = &capture.file.frames[v.frame_index];
     let gt = frame.gt.as_ref();
@@ -975,15 +935,14 @@ fn load_capture_view(
             )));
         }
     }
-    let (image, obj) = shrink_object(&rgb, &object, f);
-    let depth = depth_map.map(|d| shrink_depth(&d, f)).unwrap_or_default();
-    Ok(View {
-        camera: capture_camera(capture, v, f),
-        image,
-        object: obj,
-        excluded: shrink_any(&gripper, f),
-        depth,
-    })
+    Ok(PackedView::shrink(
+        capture_camera(capture, v, f),
+        &rgb,
+        &object,
+        Some(&gripper),
+        depth_map.as_ref(),
+        f,
+    ))
 }
 
 /// The far plane of captures and of photo sets in metres or similar units.
@@ -1086,7 +1045,7 @@ fn load_photo(
     mask_threshold: u8,
     f: u32,
     far: f32,
-) -> Result<View, SplatError> {
+) -> Result<PackedView, SplatError> {
     use omniscan_core::image_io::{Mask, read_depth, read_mask, read_rgb, read_rgb_and_alpha};
     let bad = |what: &str| SplatError::file(cameras_json, format!("frames[{index}]: {what}"));
     let image_path = &frame.image_path;
@@ -1157,16 +1116,14 @@ fn load_photo(
     };
     let camera = photo_camera(frame, rgb.width, rgb.height, f, far);
     let Some(distortion) = &frame.distortion else {
-        let (image, object) = shrink_object(&rgb, &mask, f);
-        return Ok(View {
+        return Ok(PackedView::shrink(
             camera,
-            image,
-            object,
-            excluded: gripper
-                .map(|g| shrink_any(&g, f))
-                .unwrap_or_else(|| vec![0.0; (w * h) as usize]),
-            depth: depth.map(|d| shrink_depth(&d, f)).unwrap_or_default(),
-        });
+            &rgb,
+            &mask,
+            gripper.as_ref(),
+            depth.as_ref(),
+            f,
+        ));
     };
     let undistortion = Undistortion::new(
         distortion,
@@ -1174,11 +1131,6 @@ fn load_photo(
         rgb.width,
         rgb.height,
     );
-    let (image, object) = shrink_object(&undistortion.rgb(&rgb)?, &undistortion.mask(&mask)?, f);
-    let depth = match depth {
-        Some(d) => shrink_depth(&undistortion.depth(&d)?, f),
-        None => Vec::new(),
-    };
     // Left out: what the lens did not see, and the gripper where it did.
     let mut excluded = undistortion.unseen_mask();
     if let Some(g) = gripper {
@@ -1186,13 +1138,15 @@ fn load_photo(
             *e = (*e).max(g);
         }
     }
-    Ok(View {
+    let depth = depth.map(|d| undistortion.depth(&d)).transpose()?;
+    Ok(PackedView::shrink(
         camera,
-        image,
-        object,
-        excluded: shrink_any(&excluded, f),
-        depth,
-    })
+        &undistortion.rgb(&rgb)?,
+        &undistortion.mask(&mask)?,
+        Some(&excluded),
+        depth.as_ref(),
+        f,
+    ))
 }
 
 #[cfg(test)]
@@ -1211,37 +1165,6 @@ mod tests {
         let (train, held_out) = split_held_out_from((0..17).collect(), 8, Some(0));
         assert_eq!(held_out, vec![0, 8, 16]);
         assert_eq!(train.len(), 14);
-    }
-
-    #[test]
-    fn shrinking_keeps_the_background_out_of_the_object_edge() {
-        use omniscan_core::image_io::{Mask, RgbImage};
-        // A 4x2 photo shrunk by 2: the left block is half object (dark red)
-        // on a white table, the right block is all table.
-        let (object, table) = ([60u8, 10, 10], [250u8, 250, 250]);
-        let is_object = [true, false, false, false, true, false, false, false];
-        let rgb = RgbImage {
-            width: 4,
-            height: 2,
-            data: is_object
-                .iter()
-                .flat_map(|&o| if o { object } else { table })
-                .collect(),
-        };
-        let mask = Mask {
-            width: 4,
-            height: 2,
-            data: is_object.iter().map(|&o| if o { 255 } else { 0 }).collect(),
-        };
-        let (image, coverage) = shrink_object(&rgb, &mask, 2);
-        assert_eq!(coverage, vec![0.5, 0.0]);
-        // Colour × coverage is the object alone over black: half the red, no white.
-        let composite = image[0].map(|c| c * coverage[0]);
-        for (c, o) in composite.iter().zip(object) {
-            assert!((c - 0.5 * o as f32 / 255.0).abs() < 1e-6, "{composite:?}");
-        }
-        // A block without object keeps the photo's mean.
-        assert!(image[1].iter().all(|&c| (c - 250.0 / 255.0).abs() < 1e-6));
     }
 
     /// A photo set of one 8x4 grey image with a full mask (and an 8x2 mask

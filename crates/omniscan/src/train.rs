@@ -256,7 +256,7 @@ pub fn train_capture(args: &TrainArgs) -> Result<serde_json::Value> {
     let all = {
         let bar = crate::progress_bar(source.len(), "reading", "views");
         let all =
-            source.load_each_reporting(&(0..source.len()).collect::<Vec<_>>(), &|| bar.inc(1))?;
+            source.load_packed_each(&(0..source.len()).collect::<Vec<_>>(), &|| bar.inc(1))?;
         bar.finish_and_clear();
         all
     };
