@@ -64,13 +64,18 @@ pub struct PackedView {
 /// Each shrunk pixel's colour and object coverage.
 #[derive(Debug, Clone, PartialEq)]
 enum Colour {
-    /// Shrunk by `block` ≤ [`WIDEST_PACKED_BLOCK`]: `inside[i]` of the
+    /// Full size: each pixel's 8-bit colour, and 1 on the object.
+    FullSize {
+        colour: Vec<[u8; 3]>,
+        object: Vec<u8>,
+    },
+    /// Shrunk by `block` (2 to [`WIDEST_PACKED_BLOCK`]): `inside[i]` of the
     /// block's sub-pixels are on the object, and `sums[i]` adds their 8-bit
     /// colours (every sub-pixel's where none is).
-    Sums {
+    Shrunk {
         block: u32,
         inside: Vec<u8>,
-        sums: Sums,
+        sums: Vec<[u16; 3]>,
     },
     /// Shrunk by more: as a step reads it.
     Floats {
@@ -79,20 +84,20 @@ enum Colour {
     },
 }
 
-/// Colour sums: a full-size pixel's are its own bytes.
-#[derive(Debug, Clone, PartialEq)]
-enum Sums {
-    Bytes(Vec<[u8; 3]>),
-    Words(Vec<[u16; 3]>),
+/// An 8-bit colour as training reads it (a full-size pixel is its own
+/// block of one, and x / 1 is x, so this is the shrunk formula's value).
+fn full_size_colour(v: u8) -> f32 {
+    f32::from(v) / 255.0
 }
 
-impl Sums {
-    fn get(&self, i: usize) -> [u32; 3] {
-        match self {
-            Sums::Bytes(s) => s[i].map(u32::from),
-            Sums::Words(s) => s[i].map(u32::from),
-        }
-    }
+/// A shrunk pixel's colour and coverage from its colour sums and the count
+/// of its `sub_pixels` on the object.
+fn shrunk_colour(sum: [u32; 3], inside: u32, sub_pixels: u32) -> ([f32; 3], f32) {
+    let count = if inside > 0 { inside } else { sub_pixels };
+    (
+        sum.map(|v| v as f32 / 255.0 / count as f32),
+        inside as f32 / sub_pixels as f32,
+    )
 }
 
 impl PackedView {
@@ -123,19 +128,14 @@ impl PackedView {
     /// Pixel `i`'s values as a step reads them.
     pub fn pixel(&self, i: usize) -> Pixel {
         let (colour, object) = match &self.colour {
-            Colour::Sums {
+            Colour::FullSize { colour, object } => {
+                (colour[i].map(full_size_colour), f32::from(object[i]))
+            }
+            Colour::Shrunk {
                 block,
                 inside,
                 sums,
-            } => {
-                let sub_pixels = block * block;
-                let inside = u32::from(inside[i]);
-                let count = if inside > 0 { inside } else { sub_pixels };
-                (
-                    sums.get(i).map(|v| v as f32 / 255.0 / count as f32),
-                    inside as f32 / sub_pixels as f32,
-                )
-            }
+            } => shrunk_colour(sums[i].map(u32::from), u32::from(inside[i]), block * block),
             Colour::Floats { image, object } => (image[i], object[i]),
         };
         Pixel {
@@ -148,31 +148,67 @@ impl PackedView {
 
     /// The view a step reads, the same to the bit as shrinking to floats.
     pub fn unpack(&self) -> View {
-        let n = self.excluded.len();
-        let pixels: Vec<Pixel> = (0..n).into_par_iter().map(|i| self.pixel(i)).collect();
-        View {
+        let mut view = View {
             camera: self.camera,
-            image: pixels.iter().map(|p| p.colour).collect(),
-            object: pixels.iter().map(|p| p.object).collect(),
-            excluded: pixels.iter().map(|p| p.excluded).collect(),
-            depth: if self.depth_mm.is_empty() {
-                Vec::new()
-            } else {
-                pixels.iter().map(|p| p.depth).collect()
-            },
+            image: Vec::new(),
+            object: Vec::new(),
+            excluded: Vec::new(),
+            depth: Vec::new(),
+        };
+        self.unpack_into(&mut view);
+        view
+    }
+
+    /// [`unpack`](Self::unpack) into `view`'s buffers, which a step reuses
+    /// (see [`crate::views::TrainingView::pixels_in`]).
+    pub fn unpack_into(&self, view: &mut View) {
+        let n = self.excluded.len();
+        view.camera = self.camera;
+        view.image.resize(n, [0.0; 3]);
+        view.object.resize(n, 0.0);
+        view.excluded.resize(n, 0.0);
+        view.depth
+            .resize(if self.depth_mm.is_empty() { 0 } else { n }, 0.0);
+        let colour_and_object = view.image.par_iter_mut().zip(view.object.par_iter_mut());
+        match &self.colour {
+            Colour::FullSize { colour, object } => {
+                let table: [f32; 256] = std::array::from_fn(|v| full_size_colour(v as u8));
+                colour_and_object
+                    .zip(colour.par_iter().zip(object))
+                    .for_each(|((c, o), (packed, &on))| {
+                        *c = packed.map(|v| table[usize::from(v)]);
+                        *o = f32::from(on);
+                    });
+            }
+            Colour::Shrunk {
+                block,
+                inside,
+                sums,
+            } => colour_and_object.zip(sums.par_iter().zip(inside)).for_each(
+                |((c, o), (&sum, &inside))| {
+                    (*c, *o) = shrunk_colour(sum.map(u32::from), u32::from(inside), block * block)
+                },
+            ),
+            Colour::Floats { image, object } => {
+                view.image.copy_from_slice(image);
+                view.object.copy_from_slice(object);
+            }
         }
+        view.excluded
+            .par_iter_mut()
+            .zip(&self.excluded)
+            .for_each(|(e, &x)| *e = f32::from(x));
+        view.depth
+            .par_iter_mut()
+            .zip(&self.depth_mm)
+            .for_each(|(z, &mm)| *z = mm as f32 * 0.001);
     }
 
     /// Bytes its pixels take in memory.
     pub fn pixel_bytes(&self) -> usize {
         let colour = match &self.colour {
-            Colour::Sums { inside, sums, .. } => {
-                inside.len()
-                    + match sums {
-                        Sums::Bytes(s) => s.len() * 3,
-                        Sums::Words(s) => s.len() * 6,
-                    }
-            }
+            Colour::FullSize { colour, object } => colour.len() * 3 + object.len(),
+            Colour::Shrunk { inside, sums, .. } => inside.len() + sums.len() * 6,
             Colour::Floats { image, object } => image.len() * 12 + object.len() * 4,
         };
         colour + self.excluded.len() + self.depth_mm.len() * 2
@@ -211,31 +247,24 @@ fn shrink_object(rgb: &RgbImage, mask: &Mask, f: u32) -> Colour {
             (inside, if inside > 0 { object } else { all })
         })
         .collect();
-    if f > WIDEST_PACKED_BLOCK {
-        let sub_pixels = f * f;
-        let (image, object) = blocks
-            .into_iter()
-            .map(|(inside, sum)| {
-                let count = if inside > 0 { inside } else { sub_pixels };
-                (
-                    sum.map(|v| v as f32 / 255.0 / count as f32),
-                    inside as f32 / sub_pixels as f32,
-                )
-            })
-            .unzip();
-        return Colour::Floats { image, object };
-    }
-    // Both fit by WIDEST_PACKED_BLOCK's arithmetic.
-    let inside = blocks.iter().map(|&(inside, _)| inside as u8).collect();
-    let sums = if f == 1 {
-        Sums::Bytes(blocks.iter().map(|(_, s)| s.map(|v| v as u8)).collect())
-    } else {
-        Sums::Words(blocks.iter().map(|(_, s)| s.map(|v| v as u16)).collect())
-    };
-    Colour::Sums {
-        block: f,
-        inside,
-        sums,
+    // The narrowing casts below hold by WIDEST_PACKED_BLOCK's arithmetic.
+    match f {
+        1 => Colour::FullSize {
+            colour: blocks.iter().map(|(_, s)| s.map(|v| v as u8)).collect(),
+            object: blocks.iter().map(|&(inside, _)| inside as u8).collect(),
+        },
+        2..=WIDEST_PACKED_BLOCK => Colour::Shrunk {
+            block: f,
+            inside: blocks.iter().map(|&(inside, _)| inside as u8).collect(),
+            sums: blocks.iter().map(|(_, s)| s.map(|v| v as u16)).collect(),
+        },
+        _ => {
+            let (image, object) = blocks
+                .into_iter()
+                .map(|(inside, sum)| shrunk_colour(sum, inside, f * f))
+                .unzip();
+            Colour::Floats { image, object }
+        }
     }
 }
 
@@ -438,6 +467,62 @@ mod tests {
         }
         // A block without object keeps the photo's mean.
         assert!(image[1].iter().all(|&c| (c - 250.0 / 255.0).abs() < 1e-6));
+    }
+
+    /// Unpacking into buffers another view left behind (a larger one, with
+    /// depth) gives what a fresh unpack does.
+    #[test]
+    fn unpacking_into_used_buffers_leaves_nothing_of_their_last_view() {
+        let photo = |width: u32, height: u32, seed: u64| {
+            let mut lcg = Lcg(seed);
+            let n = (width * height) as usize;
+            let rgb = RgbImage {
+                width,
+                height,
+                data: (0..n * 3).map(|_| (lcg.next() * 256.0) as u8).collect(),
+            };
+            let mask = Mask {
+                width,
+                height,
+                data: (0..n).map(|i| if i % 3 == 0 { 0 } else { 255 }).collect(),
+            };
+            (rgb, mask)
+        };
+        let (big, big_mask) = photo(40, 34, 1);
+        let depth = DepthMm {
+            width: 40,
+            height: 34,
+            data: vec![700; 40 * 34],
+        };
+        let (small, small_mask) = photo(32, 16, 2);
+        for block in [1, 2, 16] {
+            let first = PackedView::shrink(
+                camera(40, 34),
+                &big,
+                &big_mask,
+                Some(&big_mask),
+                Some(&depth),
+                1,
+            );
+            let second = PackedView::shrink(
+                camera(32 / block, 16 / block),
+                &small,
+                &small_mask,
+                None,
+                None,
+                block,
+            );
+            let mut buffers = first.unpack();
+            second.unpack_into(&mut buffers);
+            let fresh = second.unpack();
+            assert_eq!(buffers.image, fresh.image);
+            assert_eq!(
+                (&buffers.object, &buffers.excluded, &buffers.depth),
+                (&fresh.object, &fresh.excluded, &fresh.depth)
+            );
+            assert!(buffers.depth.is_empty());
+            assert_eq!(buffers.camera, fresh.camera);
+        }
     }
 
     #[test]

@@ -757,6 +757,7 @@ pub fn train_resumable(
         }
         Renderer::Cpu => None,
     };
+    let mut scratch = None;
     for step in first_step..=config.steps {
         if order.is_empty() {
             order = (0..views.len()).collect();
@@ -764,7 +765,7 @@ pub fn train_resumable(
                 order.swap(i, rng.random_range(0..=i));
             }
         }
-        let view = views[order.pop().unwrap()].pixels();
+        let view = views[order.pop().unwrap()].pixels_in(&mut scratch);
         let degree = (step / config.sh_interval.max(1))
             .min(config.max_sh_degree)
             .min(s.sh_degree);
@@ -823,7 +824,7 @@ pub fn train_resumable(
                 d_rgb,
                 d_alpha,
                 psnr: image_psnr,
-            } = step_loss(&view, &r, background, config);
+            } = step_loss(view, &r, background, config);
             let grads = backward_binned(
                 &g,
                 &view.camera,

@@ -38,7 +38,13 @@ pub struct View {
 /// step needs them. A [`View`] lends its own; a [`PackedView`] is unpacked.
 pub trait TrainingView: Sync {
     fn camera(&self) -> &Camera<f32>;
+    /// The view's pixels.
     fn pixels(&self) -> std::borrow::Cow<'_, View>;
+    /// The view's pixels, made in `scratch` if they must be made: a loop
+    /// over views reuses one set of buffers (a 4K view unpacks in 13 ms on
+    /// two threads into used buffers, in 140 ms into fresh ones, most of it
+    /// page faults).
+    fn pixels_in<'a>(&'a self, scratch: &'a mut Option<View>) -> &'a View;
     /// Pixel `i` alone, as [`pixels`](Self::pixels) would give it.
     fn pixel(&self, i: usize) -> crate::packed::Pixel;
 }
@@ -50,6 +56,10 @@ impl TrainingView for View {
 
     fn pixels(&self) -> std::borrow::Cow<'_, View> {
         std::borrow::Cow::Borrowed(self)
+    }
+
+    fn pixels_in<'a>(&'a self, _: &'a mut Option<View>) -> &'a View {
+        self
     }
 
     fn pixel(&self, i: usize) -> crate::packed::Pixel {
@@ -64,6 +74,16 @@ impl TrainingView for PackedView {
 
     fn pixels(&self) -> std::borrow::Cow<'_, View> {
         std::borrow::Cow::Owned(self.unpack())
+    }
+
+    fn pixels_in<'a>(&'a self, scratch: &'a mut Option<View>) -> &'a View {
+        match scratch {
+            Some(view) => {
+                self.unpack_into(view);
+                view
+            }
+            None => scratch.insert(self.unpack()),
+        }
     }
 
     fn pixel(&self, i: usize) -> crate::packed::Pixel {
