@@ -22,29 +22,7 @@ use rayon::prelude::*;
 use omniscan_core::image_io::{DepthMm, Mask, RgbImage};
 
 use crate::raster::Camera;
-use crate::views::View;
-
-/// One pixel of a training view, as [`View`] holds it.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Pixel {
-    pub colour: [f32; 3],
-    pub object: f32,
-    pub excluded: f32,
-    /// Metres; 0 where unknown or where the view has no depth.
-    pub depth: f32,
-}
-
-impl View {
-    /// Pixel `i`'s values.
-    pub fn pixel(&self, i: usize) -> Pixel {
-        Pixel {
-            colour: self.image[i],
-            object: self.object[i],
-            excluded: self.excluded[i],
-            depth: self.depth.get(i).copied().unwrap_or(0.0),
-        }
-    }
-}
+use crate::views::{Pixel, View};
 
 /// The widest block whose sub-pixel counts fit a byte (15² = 225) and whose
 /// colour sums fit 16 bits (225 · 255 < 65,536).

@@ -34,6 +34,28 @@ pub struct View {
     pub depth: Vec<f32>,
 }
 
+/// One pixel of a training view, as [`View`] holds it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Pixel {
+    pub colour: [f32; 3],
+    pub object: f32,
+    pub excluded: f32,
+    /// Metres; 0 where unknown or where the view has no depth.
+    pub depth: f32,
+}
+
+impl View {
+    /// Pixel `i`'s values.
+    pub fn pixel(&self, i: usize) -> Pixel {
+        Pixel {
+            colour: self.image[i],
+            object: self.object[i],
+            excluded: self.excluded[i],
+            depth: self.depth.get(i).copied().unwrap_or(0.0),
+        }
+    }
+}
+
 /// What training reads of a view: its camera at any time, its pixels when a
 /// step needs them. A [`View`] lends its own; a [`PackedView`] is unpacked.
 pub trait TrainingView: Sync {
@@ -46,7 +68,7 @@ pub trait TrainingView: Sync {
     /// page faults).
     fn pixels_in<'a>(&'a self, scratch: &'a mut Option<View>) -> &'a View;
     /// Pixel `i` alone, as [`pixels`](Self::pixels) would give it.
-    fn pixel(&self, i: usize) -> crate::packed::Pixel;
+    fn pixel(&self, i: usize) -> Pixel;
 }
 
 impl TrainingView for View {
@@ -62,7 +84,7 @@ impl TrainingView for View {
         self
     }
 
-    fn pixel(&self, i: usize) -> crate::packed::Pixel {
+    fn pixel(&self, i: usize) -> Pixel {
         View::pixel(self, i)
     }
 }
@@ -86,7 +108,7 @@ impl TrainingView for PackedView {
         }
     }
 
-    fn pixel(&self, i: usize) -> crate::packed::Pixel {
+    fn pixel(&self, i: usize) -> Pixel {
         PackedView::pixel(self, i)
     }
 }
