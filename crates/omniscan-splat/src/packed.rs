@@ -183,6 +183,18 @@ impl PackedView {
             .for_each(|(z, &mm)| *z = mm as f32 * 0.001);
     }
 
+    /// Bytes a pixel of a view shrunk by `block` takes packed, with or
+    /// without depth: what [`pixel_bytes`](Self::pixel_bytes) comes to,
+    /// known before any image is read.
+    pub fn bytes_per_pixel(block: u32, depth: bool) -> usize {
+        let colour = match block {
+            1 => 3 + 1,
+            2..=WIDEST_PACKED_BLOCK => 6 + 1,
+            _ => 12 + 4,
+        };
+        colour + 1 + if depth { 2 } else { 0 }
+    }
+
     /// Bytes its pixels take in memory.
     pub fn pixel_bytes(&self) -> usize {
         let colour = match &self.colour {
@@ -407,13 +419,12 @@ mod tests {
             // Part-object blocks occur at every size, so the test sees
             // colour averaged over a block's object sub-pixels only.
             assert!(view.object.iter().any(|&c| c > 0.0 && c < 1.0) || f == 1);
-            let floats = view.image.len() * 24;
             let per_pixel = packed.pixel_bytes() as f64 / view.image.len() as f64;
-            match f {
-                1 => assert_eq!(per_pixel, 7.0),
-                2..=15 => assert_eq!(per_pixel, 10.0),
-                _ => assert_eq!(packed.pixel_bytes(), floats - view.image.len() * 5),
-            }
+            assert_eq!(per_pixel, PackedView::bytes_per_pixel(f, true) as f64);
+            assert_eq!(
+                per_pixel,
+                [7.0, 10.0, 19.0][(f > 1) as usize + (f > 15) as usize]
+            );
         }
     }
 
@@ -519,6 +530,11 @@ mod tests {
         let view = PackedView::shrink(camera(2, 1), &rgb, &object, None, None, 2).unpack();
         assert_eq!(view.excluded, vec![0.0, 0.0]);
         assert!(view.depth.is_empty());
+        let packed = PackedView::shrink(camera(2, 1), &rgb, &object, None, None, 2);
+        assert_eq!(
+            packed.pixel_bytes(),
+            2 * PackedView::bytes_per_pixel(2, false)
+        );
         assert_eq!(view.object, vec![1.0, 1.0]);
     }
 }

@@ -535,6 +535,41 @@ impl ViewSource {
         }
     }
 
+    /// The bytes training's packed views ([`crate::packed`]) of every view
+    /// would take shrunk by each of `downscales`, known before any image is
+    /// decoded (a photo set's image headers are read, once).
+    pub fn packed_bytes(&self, downscales: &[u32]) -> Result<Vec<u64>, SplatError> {
+        let sizes: Vec<(u32, u32, bool)> = (0..self.len())
+            .into_par_iter()
+            .map(|i| match &self.frames {
+                Frames::Capture { capture, views } => {
+                    let k = capture.intrinsics();
+                    let frame = &capture.file.frames[views[i].frame_index];
+                    Ok((k.width, k.height, frame.depth_path.is_some()))
+                }
+                Frames::Photos { frames, .. } => {
+                    let frame = &frames[i];
+                    let (width, height, _) = omniscan_core::image_io::probe(&frame.image_path)?;
+                    Ok((width, height, frame.depth_path.is_some()))
+                }
+            })
+            .collect::<Result<_, SplatError>>()?;
+        downscales
+            .iter()
+            .map(|&downscale| {
+                let f = downscale_factor(downscale)?;
+                Ok(sizes
+                    .iter()
+                    .map(|&(width, height, depth)| {
+                        u64::from(width / f)
+                            * u64::from(height / f)
+                            * PackedView::bytes_per_pixel(f, depth) as u64
+                    })
+                    .sum())
+            })
+            .collect()
+    }
+
     /// Checks a photo set's files without decoding them, on all threads:
     /// every image's, mask's and depth map's header is read, their sizes
     /// compared with each other and with the frame's stated `w`, `h`, and
@@ -1352,6 +1387,36 @@ mod tests {
             }],
         });
         (dir, file)
+    }
+
+    /// What reading would take is known before it: the estimate is the
+    /// packed views' own size, with depth and without, at every downscale.
+    #[test]
+    fn a_view_sources_packed_size_is_known_before_it_is_read() {
+        let (dir, mut file) = one_nerfstudio_set();
+        let mut second = file["frames"][0].clone();
+        second.as_object_mut().unwrap().remove("depth_file_path");
+        file["frames"].as_array_mut().unwrap().push(second);
+        let path = dir.path().join("transforms.json");
+        std::fs::write(&path, file.to_string()).unwrap();
+        let estimates = ViewSource::from_photo_set(&path, 1)
+            .unwrap()
+            .packed_bytes(&[1, 2, 3])
+            .unwrap();
+        for (downscale, &estimate) in [1, 2, 3].into_iter().zip(&estimates) {
+            let source = ViewSource::from_photo_set(&path, downscale).unwrap();
+            let read: usize = source
+                .load_packed_each(&[0, 1], &|| {})
+                .unwrap()
+                .iter()
+                .map(PackedView::pixel_bytes)
+                .sum();
+            assert_eq!(estimate, read as u64, "downscale {downscale}");
+        }
+        // 32 pixels with depth at 7 bytes, 32 without at 5.
+        assert_eq!(estimates[0], 32 * 7 + 32 * 5);
+        let source = ViewSource::from_photo_set(&path, 1).unwrap();
+        assert!(source.packed_bytes(&[0]).is_err());
     }
 
     #[test]

@@ -159,8 +159,55 @@ pub struct TrainArgs {
     /// Where rendering and its gradients run: auto (a real GPU when there is one, else the CPU), cpu, or gpu (any device, software ones included).
     #[arg(long, default_value = "auto")]
     pub backend: Backend,
+    /// Read the views even where they need more memory than the system has available (with swap, say); without it such a set is refused before reading, naming the --downscale that fits.
+    #[arg(long)]
+    pub no_memory_check: bool,
     #[arg(long)]
     pub json: bool,
+}
+
+/// Refuses, before reading, views whose packed form alone needs more than
+/// the memory the system has available (Linux's MemAvailable): reading them
+/// would end, minutes in, in the kernel killing the run. The error names the
+/// smallest --downscale at which they fit.
+/// `available` is `None` where the system does not say.
+fn check_view_memory(source: &ViewSource, downscale: u32, available: Option<u64>) -> Result<()> {
+    let Some(available) = available else {
+        return Ok(());
+    };
+    let downscales: Vec<u32> = (downscale..=downscale.saturating_mul(16)).collect();
+    let needs = source.packed_bytes(&downscales)?;
+    if needs[0] <= available {
+        return Ok(());
+    }
+    let gb = |bytes: u64| bytes as f64 / 1e9;
+    // A downscale that leaves no pixel "fits" too, and is no answer.
+    let fits = match downscales
+        .iter()
+        .zip(&needs)
+        .find(|&(_, &need)| need > 0 && need <= available)
+    {
+        Some((d, need)) => format!("--downscale {d} needs {:.2} GB", gb(*need)),
+        None => format!("no --downscale up to {} fits", downscales.last().unwrap()),
+    };
+    let views = match source.len() {
+        1 => "the view needs".to_string(),
+        n => format!("the {n} views need"),
+    };
+    bail!(
+        "{views} {:.2} GB of memory at --downscale {downscale} (packed, before the model), and {:.2} GB is available: {fits}; --no-memory-check reads them anyway",
+        gb(needs[0]),
+        gb(available)
+    )
+}
+
+/// The memory the system can give without swapping, where it says
+/// (Linux's /proc/meminfo).
+fn available_memory() -> Option<u64> {
+    let meminfo = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = meminfo.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib * 1024)
 }
 
 /// The summary's words for views whose object pixels the model never covers.
@@ -253,6 +300,9 @@ pub fn train_capture(args: &TrainArgs) -> Result<serde_json::Value> {
         );
     }
     let (source, view_set) = view_source(&args.capture, args.arm, right_to_left, args.downscale)?;
+    if !args.no_memory_check {
+        check_view_memory(&source, args.downscale, available_memory())?;
+    }
     let all = {
         let bar = crate::progress_bar(source.len(), "reading", "views");
         let all =
@@ -723,6 +773,46 @@ pub fn train_merged(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn views_that_do_not_fit_in_memory_are_refused_naming_a_downscale_that_does() {
+        use omniscan_core::image_io::{RgbImage, write_rgb};
+        let dir = tempfile::tempdir().unwrap();
+        let image = RgbImage {
+            width: 64,
+            height: 48,
+            data: vec![90; 64 * 48 * 3],
+        };
+        write_rgb(&dir.path().join("0.png"), &image).unwrap();
+        let set = json!({
+            "fl_x": 50.0, "fl_y": 50.0, "cx": 32.0, "cy": 24.0, "w": 64, "h": 48,
+            "frames": [{
+                "file_path": "0.png",
+                "transform_matrix": [[1., 0., 0., 0.], [0., 1., 0., 0.], [0., 0., 1., 5.], [0., 0., 0., 1.]],
+            }],
+        });
+        let path = dir.path().join("transforms.json");
+        std::fs::write(&path, set.to_string()).unwrap();
+        let source = ViewSource::from_photo_set(&path, 1).unwrap();
+        // Full size without depth: 5 bytes a pixel; by 2 (32x24), 8; by 3 (21x16), 8.
+        let full = 64 * 48 * 5;
+        assert!(check_view_memory(&source, 1, Some(full)).is_ok());
+        assert!(check_view_memory(&source, 1, None).is_ok());
+        let refusal = |available| {
+            check_view_memory(&source, 1, Some(available))
+                .unwrap_err()
+                .to_string()
+        };
+        let err = refusal(full - 1);
+        assert!(
+            err.contains("the view needs 0.00 GB of memory at --downscale 1"),
+            "{err}"
+        );
+        assert!(err.contains("--downscale 2 needs"), "{err}");
+        assert!(refusal(32 * 24 * 8 - 1).contains("--downscale 3 needs"));
+        // Nothing short of a downscale that leaves no pixel fits.
+        assert!(refusal(1).contains("no --downscale up to 16 fits"));
+    }
 
     #[test]
     fn a_checkpoint_resumes_only_under_its_own_appearance_and_filter() {
