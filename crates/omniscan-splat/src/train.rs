@@ -1108,7 +1108,7 @@ pub fn evaluate_views<'a>(
     lpips: Option<&crate::lpips::Lpips>,
     rendered: impl Fn(usize, &View, &[[f32; 3]]) -> Result<(), SplatError> + Sync,
 ) -> Result<serde_json::Value, SplatError> {
-    use crate::metrics::ssim;
+    use crate::metrics::ssim_whole_and_masked;
     let g = model.gaussians::<f32>();
     let settings = model.render_settings([0.0; 3]);
     // psnr, ssim, psnr_masked, ssim_masked, lpips, lpips_masked.
@@ -1143,11 +1143,12 @@ pub fn evaluate_views<'a>(
                 l_mask = Some(net.distance(&r.rgb, &target, w, h, Some(&mask))?);
             }
         }
+        let (ssim_whole, ssim_masked) = ssim_whole_and_masked(&a, &b, &mask);
         Ok([
             psnr(&a, &b, None),
-            ssim(&a, &b, None),
+            ssim_whole,
             psnr(&a, &b, Some(&mask)),
-            ssim(&a, &b, Some(&mask)),
+            ssim_masked,
             l_all,
             l_mask,
         ])
