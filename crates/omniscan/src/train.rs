@@ -778,14 +778,15 @@ mod tests {
     fn views_that_do_not_fit_in_memory_are_refused_naming_a_downscale_that_does() {
         use omniscan_core::image_io::{RgbImage, write_rgb};
         let dir = tempfile::tempdir().unwrap();
+        // 12 rows: shrunk by 13 or more, nothing is left.
         let image = RgbImage {
             width: 64,
-            height: 48,
-            data: vec![90; 64 * 48 * 3],
+            height: 12,
+            data: vec![90; 64 * 12 * 3],
         };
         write_rgb(&dir.path().join("0.png"), &image).unwrap();
         let set = json!({
-            "fl_x": 50.0, "fl_y": 50.0, "cx": 32.0, "cy": 24.0, "w": 64, "h": 48,
+            "fl_x": 50.0, "fl_y": 50.0, "cx": 32.0, "cy": 6.0, "w": 64, "h": 12,
             "frames": [{
                 "file_path": "0.png",
                 "transform_matrix": [[1., 0., 0., 0.], [0., 1., 0., 0.], [0., 0., 1., 5.], [0., 0., 0., 1.]],
@@ -794,8 +795,8 @@ mod tests {
         let path = dir.path().join("transforms.json");
         std::fs::write(&path, set.to_string()).unwrap();
         let source = ViewSource::from_photo_set(&path, 1).unwrap();
-        // Full size without depth: 5 bytes a pixel; by 2 (32x24), 8; by 3 (21x16), 8.
-        let full = 64 * 48 * 5;
+        // Full size without depth: 5 bytes a pixel; by 2 (32x6), 8; by 3 (21x4), 8.
+        let full = 64 * 12 * 5;
         assert!(check_view_memory(&source, 1, Some(full)).is_ok());
         assert!(check_view_memory(&source, 1, None).is_ok());
         let refusal = |available| {
@@ -809,8 +810,8 @@ mod tests {
             "{err}"
         );
         assert!(err.contains("--downscale 2 needs"), "{err}");
-        assert!(refusal(32 * 24 * 8 - 1).contains("--downscale 3 needs"));
-        // Nothing short of a downscale that leaves no pixel fits.
+        assert!(refusal(32 * 6 * 8 - 1).contains("--downscale 3 needs"));
+        // Only downscales that leave no pixel "fit", and they are no answer.
         assert!(refusal(1).contains("no --downscale up to 16 fits"));
     }
 
