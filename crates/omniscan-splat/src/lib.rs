@@ -44,6 +44,27 @@ pub(crate) mod test_support {
             .install(work)
     }
 
+    /// A pinhole camera with world-to-camera `viewmat`, focal length `focal`
+    /// pixels and its principal point at the image centre (near 0.01, far 100).
+    pub fn pinhole(
+        viewmat: [[f32; 4]; 4],
+        focal: f32,
+        width: u32,
+        height: u32,
+    ) -> crate::raster::Camera<f32> {
+        crate::raster::Camera {
+            viewmat,
+            fx: focal,
+            fy: focal,
+            cx: width as f32 / 2.0,
+            cy: height as f32 / 2.0,
+            width,
+            height,
+            near: 0.01,
+            far: 100.0,
+        }
+    }
+
     /// A deterministic pseudo-random sequence in [0, 1), for test scenes.
     pub struct Lcg(pub u64);
     impl Lcg {

@@ -455,17 +455,12 @@ mod tests {
                 let flip =
                     nalgebra::Matrix4::from_diagonal(&nalgebra::Vector4::new(1.0, -1.0, -1.0, 1.0));
                 let m = flip * look.to_homogeneous();
-                Camera {
-                    viewmat: std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)] as f32)),
-                    fx: width as f32,
-                    fy: width as f32,
-                    cx: width as f32 / 2.0,
-                    cy: height as f32 / 2.0,
+                crate::test_support::pinhole(
+                    std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)] as f32)),
+                    width as f32,
                     width,
                     height,
-                    near: 0.01,
-                    far: 100.0,
-                }
+                )
             })
             .collect()
     }

@@ -69,6 +69,11 @@ fn full_size_colour(v: u8) -> f32 {
     f32::from(v) / 255.0
 }
 
+/// A depth in millimetres as training reads it, in metres (0: unknown).
+fn metres(mm: u16) -> f32 {
+    mm as f32 * 0.001
+}
+
 /// A shrunk pixel's colour and coverage from its colour sums and the count
 /// of its `sub_pixels` on the object.
 fn shrunk_colour(sum: [u32; 3], inside: u32, sub_pixels: u32) -> ([f32; 3], f32) {
@@ -121,7 +126,7 @@ impl PackedView {
             colour,
             object,
             excluded: f32::from(self.excluded[i]),
-            depth: self.depth_mm.get(i).map_or(0.0, |&mm| mm as f32 * 0.001),
+            depth: self.depth_mm.get(i).map_or(0.0, |&mm| metres(mm)),
         }
     }
 
@@ -180,7 +185,7 @@ impl PackedView {
         view.depth
             .par_iter_mut()
             .zip(&self.depth_mm)
-            .for_each(|(z, &mm)| *z = mm as f32 * 0.001);
+            .for_each(|(z, &mm)| *z = metres(mm));
     }
 
     /// Bytes a pixel of a view shrunk by `block` takes packed, with or
@@ -350,17 +355,7 @@ mod tests {
     fn camera(width: u32, height: u32) -> Camera<f32> {
         let mut viewmat = [[0.0; 4]; 4];
         (0..4).for_each(|i| viewmat[i][i] = 1.0);
-        Camera {
-            viewmat,
-            fx: 10.0,
-            fy: 10.0,
-            cx: width as f32 / 2.0,
-            cy: height as f32 / 2.0,
-            width,
-            height,
-            near: 0.01,
-            far: 100.0,
-        }
+        crate::test_support::pinhole(viewmat, 10.0, width, height)
     }
 
     fn bits<const N: usize>(v: &[[f32; N]]) -> Vec<[u32; N]> {

@@ -1420,17 +1420,7 @@ mod tests {
                     })
                     .collect();
                 View {
-                    camera: Camera {
-                        viewmat,
-                        fx: focal,
-                        fy: focal,
-                        cx: width as f32 / 2.0,
-                        cy: height as f32 / 2.0,
-                        width,
-                        height,
-                        near: 0.01,
-                        far: 100.0,
-                    },
+                    camera: crate::test_support::pinhole(viewmat, focal, width, height),
                     image: vec![[0.5; 3]; (width * height) as usize],
                     object,
                     excluded: vec![0.0; (width * height) as usize],

@@ -44,18 +44,6 @@ pub struct Pixel {
     pub depth: f32,
 }
 
-impl View {
-    /// Pixel `i`'s values.
-    pub fn pixel(&self, i: usize) -> Pixel {
-        Pixel {
-            colour: self.image[i],
-            object: self.object[i],
-            excluded: self.excluded[i],
-            depth: self.depth.get(i).copied().unwrap_or(0.0),
-        }
-    }
-}
-
 /// What training reads of a view: its camera at any time, its pixels when a
 /// step needs them. A [`View`] lends its own; a [`PackedView`] is unpacked.
 pub trait TrainingView: Sync {
@@ -85,7 +73,12 @@ impl TrainingView for View {
     }
 
     fn pixel(&self, i: usize) -> Pixel {
-        View::pixel(self, i)
+        Pixel {
+            colour: self.image[i],
+            object: self.object[i],
+            excluded: self.excluded[i],
+            depth: self.depth.get(i).copied().unwrap_or(0.0),
+        }
     }
 }
 
