@@ -383,10 +383,68 @@ fn cameras_look_at(views: &[impl TrainingView]) -> Option<[f32; 3]> {
     Some([p.x as f32, p.y as f32, p.z as f32])
 }
 
+/// Where `p` lies in `camera`'s image, if in front of it and inside.
+fn project_point(camera: &Camera<f32>, p: [f32; 3]) -> Option<(usize, usize)> {
+    let v = camera.viewmat;
+    let pc = [0, 1, 2].map(|r| v[r][0] * p[0] + v[r][1] * p[1] + v[r][2] * p[2] + v[r][3]);
+    if pc[2] <= camera.near {
+        return None;
+    }
+    let (u, w) = (
+        camera.fx * pc[0] / pc[2] + camera.cx,
+        camera.fy * pc[1] / pc[2] + camera.cy,
+    );
+    (u >= 0.0 && w >= 0.0 && u < camera.width as f32 && w < camera.height as f32)
+        .then_some((u as usize, w as usize))
+}
+
+/// The visual hull's verdict on `p`: its mean colour in the views that see
+/// it as object, or `None` where a view sees it outside the object (or in
+/// front of the surface its depth saw) or most views see it as gripper.
+fn hull_colour(views: &[impl TrainingView], p: [f32; 3]) -> Option<[f32; 3]> {
+    let mut seen = 0;
+    let mut in_image = 0;
+    let mut colour = [0.0f32; 3];
+    for v in views {
+        let camera = v.camera();
+        let Some((u, w)) = project_point(camera, p) else {
+            continue;
+        };
+        let pixel = v.pixel(w * camera.width as usize + u);
+        in_image += 1;
+        if pixel.object < 0.5 && pixel.excluded < 0.5 {
+            return None;
+        }
+        // Depth carves free space: a point clearly in front of the observed
+        // surface is empty (the gripper's volume would otherwise survive
+        // the masks, which always cover it).
+        if pixel.depth > 0.0 {
+            let vm = camera.viewmat;
+            let z = vm[2][0] * p[0] + vm[2][1] * p[1] + vm[2][2] * p[2] + vm[2][3];
+            if z < pixel.depth * 0.97 {
+                return None;
+            }
+        }
+        if pixel.object >= 0.5 {
+            seen += 1;
+            for c in 0..3 {
+                colour[c] += pixel.colour[c];
+            }
+        }
+    }
+    (seen > 0 && 2 * seen >= in_image).then(|| colour.map(|c| c / seen as f32))
+}
+
+/// Candidates the visual hull draws and judges on all threads at a time.
+const HULL_BATCH: usize = 4096;
+
 /// Points sampled in the cube of half-width `half` around `centre`, kept
-/// where the views agree on the object (see the module docs), with their
-/// mean colour in the views that see them as object; at most `count`, after
-/// at most 400·`count` tries.
+/// where the views agree on the object ([`hull_colour`]), with their mean
+/// colour in the views that see them as object; the first `count` kept among
+/// at most 400·`count` candidates. Candidates are drawn in batches and judged
+/// on all threads, then taken in the order drawn: the points one-by-one
+/// judging would keep (the hull took 1.4 s of a 300-step training's 11 s on
+/// one thread).
 fn visual_hull(
     views: &[impl TrainingView],
     centre: [f32; 3],
@@ -395,65 +453,34 @@ fn visual_hull(
     seed: u64,
 ) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let project_point = |cam: &Camera<f32>, p: [f32; 3]| -> Option<(usize, usize)> {
-        let v = cam.viewmat;
-        let pc = [0, 1, 2].map(|r| v[r][0] * p[0] + v[r][1] * p[1] + v[r][2] * p[2] + v[r][3]);
-        if pc[2] <= cam.near {
-            return None;
-        }
-        let (u, w) = (
-            cam.fx * pc[0] / pc[2] + cam.cx,
-            cam.fy * pc[1] / pc[2] + cam.cy,
-        );
-        (u >= 0.0 && w >= 0.0 && u < cam.width as f32 && w < cam.height as f32)
-            .then_some((u as usize, w as usize))
-    };
+    let tries = count.saturating_mul(400);
     let mut points = Vec::new();
     let mut colours = Vec::new();
-    let mut tries = 0;
-    while points.len() < count && tries < count * 400 {
-        tries += 1;
-        let offset = [0; 3].map(|_| (rng.random::<f32>() * 2.0 - 1.0) * half);
-        let p = [0, 1, 2].map(|k| centre[k] + offset[k]);
-        let mut inside = true;
-        let mut seen = 0;
-        let mut in_image = 0;
-        let mut colour = [0.0f32; 3];
-        for v in views {
-            let camera = v.camera();
-            if let Some((u, w)) = project_point(camera, p) {
-                let pixel = v.pixel(w * camera.width as usize + u);
-                in_image += 1;
-                if pixel.object < 0.5 && pixel.excluded < 0.5 {
-                    inside = false;
-                    break;
-                }
-                // Depth carves free space: a point clearly in front of the
-                // observed surface is empty (the gripper's volume would
-                // otherwise survive the masks, which always cover it).
-                if pixel.depth > 0.0 {
-                    let vm = camera.viewmat;
-                    let z = vm[2][0] * p[0] + vm[2][1] * p[1] + vm[2][2] * p[2] + vm[2][3];
-                    if z < pixel.depth * 0.97 {
-                        inside = false;
-                        break;
-                    }
-                }
-                if pixel.object >= 0.5 {
-                    seen += 1;
-                    for c in 0..3 {
-                        colour[c] += pixel.colour[c];
-                    }
-                }
-            }
-        }
-        // Keep points that most views see as object, not as gripper.
-        if inside && seen > 0 && 2 * seen >= in_image {
+    let mut drawn = 0;
+    while points.len() < count && drawn < tries {
+        let batch: Vec<[f32; 3]> = (0..HULL_BATCH.min(tries - drawn))
+            .map(|_| hull_candidate(&mut rng, centre, half))
+            .collect();
+        drawn += batch.len();
+        let judged: Vec<Option<[f32; 3]>> =
+            batch.par_iter().map(|&p| hull_colour(views, p)).collect();
+        let kept = batch
+            .into_iter()
+            .zip(judged)
+            .filter_map(|(p, colour)| Some((p, colour?)))
+            .take(count - points.len());
+        for (p, colour) in kept {
             points.push(p);
-            colours.push(colour.map(|c| c / seen as f32));
+            colours.push(colour);
         }
     }
     (points, colours)
+}
+
+/// A point drawn uniformly in the cube of half-width `half` around `centre`.
+fn hull_candidate(rng: &mut ChaCha8Rng, centre: [f32; 3], half: f32) -> [f32; 3] {
+    let offset = [0; 3].map(|_| (rng.random::<f32>() * 2.0 - 1.0) * half);
+    [0, 1, 2].map(|k| centre[k] + offset[k])
 }
 
 /// Initial splats at `points` (3DGS's initialisation from a point cloud):
@@ -555,7 +582,7 @@ pub fn step_loss(
         lo += weight[i] * (r.alpha[i] - view.object[i]).abs() / wsum;
     }
     let ssim_weights: Vec<f64> = weight
-        .iter()
+        .par_iter()
         .map(|&x| x as f64 / (3.0 * wsum as f64))
         .collect();
     let rendered = ImageView {
@@ -578,7 +605,13 @@ pub fn step_loss(
     let psnr = psnr(
         &rendered,
         &wanted,
-        Some(&view.excluded.iter().map(|&x| x < 0.5).collect::<Vec<_>>()),
+        Some(
+            &view
+                .excluded
+                .par_iter()
+                .map(|&x| x < 0.5)
+                .collect::<Vec<_>>(),
+        ),
     )
     .unwrap_or(0.0);
     StepLoss {
@@ -1452,6 +1485,32 @@ mod tests {
             v.camera.viewmat = parallel_camera(v.camera.viewmat);
         }
         assert_eq!(cameras_look_at(&parallel), None);
+    }
+
+    #[test]
+    fn the_hulls_batches_keep_the_points_one_by_one_judging_keeps() {
+        let views = ball_views([0.2, -0.1, 0.05]);
+        let (centre, half) = ([0.2f32, -0.1, 0.05], 0.35);
+        // Enough points that the first batch runs out, and a count that a
+        // batch reaches midway.
+        for (count, seed) in [(2000, 3u64), (7, 4)] {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            let (mut points, mut colours) = (Vec::new(), Vec::new());
+            let mut tries = 0;
+            while points.len() < count && tries < count * 400 {
+                tries += 1;
+                let p = hull_candidate(&mut rng, centre, half);
+                if let Some(colour) = hull_colour(&views, p) {
+                    points.push(p);
+                    colours.push(colour);
+                }
+            }
+            assert!(tries > HULL_BATCH || count < 10, "{tries} candidates");
+            assert_eq!(
+                visual_hull(&views, centre, half, count, seed),
+                (points, colours)
+            );
+        }
     }
 
     /// A camera at the same place as `viewmat`'s, facing +y.
