@@ -132,17 +132,21 @@ fn band_rows(height: usize) -> usize {
         .max(32)
 }
 
-/// Channel `c`'s input rows for the moments: x, y, x², y², xy.
-fn moment_rows<'a>(
-    x: &'a ImageView,
-    y: &'a ImageView,
+/// Rows `first..end` of channel `c`'s blurred moments μx, μy, E[x²],
+/// E[y²], E[xy], handed to `each` a row at a time.
+fn moments_band(
+    x: &ImageView,
+    y: &ImageView,
     c: usize,
-) -> impl FnMut(usize, &mut [Vec<f64>; 5]) + 'a {
+    rows: (usize, usize),
+    each: impl FnMut(usize, &[Vec<f64>; 5]),
+) {
     let width = x.width;
-    move |row, planes| {
+    let fill = |row: usize, planes: &mut [Vec<f64>; 5]| {
         let pixels = row * width..(row + 1) * width;
         moment_inputs(&x.pixels[pixels.clone()], &y.pixels[pixels], c, planes);
-    }
+    };
+    blur_band(width, x.height, rows, fill, each);
 }
 
 #[multiversion::multiversion(targets("x86_64+avx2"))]
@@ -243,19 +247,12 @@ fn ssim_maps(x: &ImageView, y: &ImageView) -> Vec<Vec<f64>> {
     plane_bands(&mut maps, width, rows)
         .into_par_iter()
         .for_each(|(c, first, map)| {
-            let end = first + map.len() / width;
-            blur_band(
-                width,
-                height,
-                (first, end),
-                moment_rows(x, y, c),
-                |row, m| {
-                    let out = &mut map[(row - first) * width..][..width];
-                    for (i, o) in out.iter_mut().enumerate() {
-                        *o = ssim_at(std::array::from_fn(|p| m[p][i])).0;
-                    }
-                },
-            );
+            moments_band(x, y, c, (first, first + map.len() / width), |row, m| {
+                let out = &mut map[(row - first) * width..][..width];
+                for (i, o) in out.iter_mut().enumerate() {
+                    *o = ssim_at(std::array::from_fn(|p| m[p][i])).0;
+                }
+            });
         });
     maps
 }
@@ -331,26 +328,19 @@ pub fn weighted_ssim_and_gradient(
         })
         .collect();
     tasks.into_par_iter().for_each(|(c, first, a, b, cc, sw)| {
-        let end = first + a.len() / width;
-        blur_band(
-            width,
-            height,
-            (first, end),
-            moment_rows(x, y, c),
-            |row, m| {
-                let at = (row - first) * width;
-                gradient_terms(
-                    m,
-                    &weights[row * width..(row + 1) * width],
-                    [
-                        &mut a[at..at + width],
-                        &mut b[at..at + width],
-                        &mut cc[at..at + width],
-                        &mut sw[at..at + width],
-                    ],
-                );
-            },
-        );
+        moments_band(x, y, c, (first, first + a.len() / width), |row, m| {
+            let at = (row - first) * width;
+            gradient_terms(
+                m,
+                &weights[row * width..(row + 1) * width],
+                [
+                    &mut a[at..at + width],
+                    &mut b[at..at + width],
+                    &mut cc[at..at + width],
+                    &mut sw[at..at + width],
+                ],
+            );
+        });
     });
     let value = terms
         .iter()
@@ -442,37 +432,28 @@ mod tests {
     mod reference {
         use super::super::{C1, C2, RADIUS, window};
 
-        fn blur(width: usize, height: usize, src: &[f64]) -> Vec<f64> {
+        /// One pass of the window along rows (`across`) or columns.
+        fn pass(width: usize, height: usize, src: &[f64], across: bool) -> Vec<f64> {
             let w = window();
-            let taps = |n: usize, at: usize| {
-                (0..w.len()).filter_map(move |k| {
-                    (at + k)
-                        .checked_sub(RADIUS)
-                        .filter(|&i| i < n)
-                        .map(|i| (w[k], i))
-                })
-            };
-            let mut across = vec![0.0; src.len()];
-            for y in 0..height {
-                for x in 0..width {
-                    let mut s = 0.0;
-                    for (wk, i) in taps(width, x) {
-                        s += wk * src[y * width + i];
-                    }
-                    across[y * width + x] = s;
-                }
-            }
             let mut out = vec![0.0; src.len()];
             for y in 0..height {
                 for x in 0..width {
+                    let (n, at) = if across { (width, x) } else { (height, y) };
                     let mut s = 0.0;
-                    for (wk, i) in taps(height, y) {
-                        s += wk * across[i * width + x];
+                    for (k, wk) in w.iter().enumerate() {
+                        let Some(i) = (at + k).checked_sub(RADIUS).filter(|&i| i < n) else {
+                            continue;
+                        };
+                        s += wk * src[if across { y * width + i } else { i * width + x }];
                     }
                     out[y * width + x] = s;
                 }
             }
             out
+        }
+
+        fn blur(width: usize, height: usize, src: &[f64]) -> Vec<f64> {
+            pass(width, height, &pass(width, height, src, true), false)
         }
 
         /// Per channel: the SSIM map and the three gradient terms before
