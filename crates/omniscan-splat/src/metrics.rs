@@ -149,6 +149,7 @@ fn moments_band(
     blur_band(width, x.height, rows, fill, each);
 }
 
+/// One row of channel `c`'s inputs to the moments, in f64: x, y, x², y², xy.
 #[multiversion::multiversion(targets("x86_64+avx2"))]
 fn moment_inputs(x: &[[f32; 3]], y: &[[f32; 3]], c: usize, planes: &mut [Vec<f64>; 5]) {
     let [xs, ys, xx, yy, xy] = planes;
