@@ -522,10 +522,10 @@ mod tests {
             height: 2,
             data: vec![255; 8],
         };
-        let view = PackedView::shrink(camera(2, 1), &rgb, &object, None, None, 2).unpack();
+        let packed = PackedView::shrink(camera(2, 1), &rgb, &object, None, None, 2);
+        let view = packed.unpack();
         assert_eq!(view.excluded, vec![0.0, 0.0]);
         assert!(view.depth.is_empty());
-        let packed = PackedView::shrink(camera(2, 1), &rgb, &object, None, None, 2);
         assert_eq!(
             packed.pixel_bytes(),
             2 * PackedView::bytes_per_pixel(2, false)

@@ -383,8 +383,9 @@ fn cameras_look_at(views: &[impl TrainingView]) -> Option<[f32; 3]> {
     Some([p.x as f32, p.y as f32, p.z as f32])
 }
 
-/// Where `p` lies in `camera`'s image, if in front of it and inside.
-fn project_point(camera: &Camera<f32>, p: [f32; 3]) -> Option<(usize, usize)> {
+/// Where `p` lies in `camera`'s image (pixel column, row), and its depth
+/// along the optical axis, if in front of the camera and inside the image.
+fn project_point(camera: &Camera<f32>, p: [f32; 3]) -> Option<(usize, usize, f32)> {
     let v = camera.viewmat;
     let pc = [0, 1, 2].map(|r| v[r][0] * p[0] + v[r][1] * p[1] + v[r][2] * p[2] + v[r][3]);
     if pc[2] <= camera.near {
@@ -395,7 +396,7 @@ fn project_point(camera: &Camera<f32>, p: [f32; 3]) -> Option<(usize, usize)> {
         camera.fy * pc[1] / pc[2] + camera.cy,
     );
     (u >= 0.0 && w >= 0.0 && u < camera.width as f32 && w < camera.height as f32)
-        .then_some((u as usize, w as usize))
+        .then_some((u as usize, w as usize, pc[2]))
 }
 
 /// The visual hull's verdict on `p`: its mean colour in the views that see
@@ -407,7 +408,7 @@ fn hull_colour(views: &[impl TrainingView], p: [f32; 3]) -> Option<[f32; 3]> {
     let mut colour = [0.0f32; 3];
     for v in views {
         let camera = v.camera();
-        let Some((u, w)) = project_point(camera, p) else {
+        let Some((u, w, z)) = project_point(camera, p) else {
             continue;
         };
         let pixel = v.pixel(w * camera.width as usize + u);
@@ -418,12 +419,8 @@ fn hull_colour(views: &[impl TrainingView], p: [f32; 3]) -> Option<[f32; 3]> {
         // Depth carves free space: a point clearly in front of the observed
         // surface is empty (the gripper's volume would otherwise survive
         // the masks, which always cover it).
-        if pixel.depth > 0.0 {
-            let vm = camera.viewmat;
-            let z = vm[2][0] * p[0] + vm[2][1] * p[1] + vm[2][2] * p[2] + vm[2][3];
-            if z < pixel.depth * 0.97 {
-                return None;
-            }
+        if pixel.depth > 0.0 && z < pixel.depth * 0.97 {
+            return None;
         }
         if pixel.object >= 0.5 {
             seen += 1;
