@@ -24,9 +24,9 @@ use rayon::prelude::*;
 
 use crate::Real;
 use crate::raster::{
-    Appearance, Camera, Colors, Gaussians, LANES, Mode, Packed, Projected, Settings, SubTiles,
-    TILE, TileBins, ViewGeometry, bin_tiles, composite_lanes, covariance, filled, lane_centres,
-    lane_pixel, quat_to_rotmat, rig_direction,
+    Appearance, Camera, Colors, Gaussians, LANES, Mode, Packed, Projected, Settings, SubTileLists,
+    SubTiles, TILE, TileBins, ViewGeometry, bin_tiles, composite_lanes, covariance, filled,
+    lane_centres, lane_pixel, quat_to_rotmat, rig_direction, sub_tile_lists,
 };
 use crate::sh;
 
@@ -79,9 +79,10 @@ impl<F: Real> Gradients<F> {
 /// passes no gradient).
 type LaneContributors<F> = [Vec<(u32, F, F, F, bool)>; LANES];
 
-/// Per-tile accumulators: (Gaussian, d mean2d, d conic, d opacity_view, d colour,
-/// |d mean2d| summed per pixel).
-type TileGrads<F> = Vec<(u32, [F; 2], [F; 3], F, [F; 3], [F; 2])>;
+/// A per-tile accumulator: (Gaussian, d mean2d, d conic, d opacity_view,
+/// d colour, |d mean2d| summed per pixel).
+type TileGrad<F> = (u32, [F; 2], [F; 3], F, [F; 3], [F; 2]);
+type TileGrads<F> = Vec<TileGrad<F>>;
 
 /// The Gaussians' index range is cut into this many buckets, each summed on
 /// its own thread. A Gaussian is in one bucket and at most once per tile,
@@ -90,23 +91,46 @@ type TileGrads<F> = Vec<(u32, [F; 2], [F; 3], F, [F; 3], [F; 2])>;
 /// pass on one thread while the others waited.
 const MERGE_BUCKETS: usize = 32;
 
+/// What a thread's tiles reuse in the backward pass, so that lists grown
+/// on one tile are not allocated and grown again on the next: the tile's
+/// partial gradients, its Gaussians as the compositing reads them (with
+/// their slots in the tile's list), the sub-tiles' lists and each lane's
+/// contributions.
+struct TileScratch<F> {
+    acc: TileGrads<F>,
+    gathered: Vec<(Packed<F>, u32)>,
+    dealt: SubTileLists<(Packed<F>, u32)>,
+    contributors: LaneContributors<F>,
+}
+
+impl<F> Default for TileScratch<F> {
+    fn default() -> Self {
+        TileScratch {
+            acc: Vec::new(),
+            gathered: Vec::new(),
+            dealt: sub_tile_lists(),
+            contributors: std::array::from_fn(|_| Vec::new()),
+        }
+    }
+}
+
 /// A tile's partial gradients ordered by bucket (a counting sort of
 /// `acc`), with where each bucket starts; `bucket_of` maps a Gaussian's
 /// index to its bucket.
 fn by_bucket<F: Copy>(
-    acc: TileGrads<F>,
+    acc: &[TileGrad<F>],
     bucket_of: impl Fn(u32) -> usize,
 ) -> (TileGrads<F>, [u32; MERGE_BUCKETS + 1]) {
     let mut starts = [0u32; MERGE_BUCKETS + 1];
-    for e in &acc {
+    for e in acc {
         starts[bucket_of(e.0) + 1] += 1;
     }
     for b in 0..MERGE_BUCKETS {
         starts[b + 1] += starts[b];
     }
     let mut next = starts;
-    let mut sorted = acc.clone();
-    for e in acc {
+    let mut sorted = acc.to_vec();
+    for &e in acc {
         let b = bucket_of(e.0);
         sorted[next[b] as usize] = e;
         next[b] += 1;
@@ -149,26 +173,29 @@ pub(crate) fn backward_binned<F: Real>(
     let bucket_of = |i: u32| i as usize / bucket_size;
     let per_tile: Vec<(TileGrads<F>, [u32; MERGE_BUCKETS + 1])> = (0..tiles.len())
         .into_par_iter()
-        .map(|t| {
+        .map_init(TileScratch::<F>::default, |scratch, t| {
+            let TileScratch {
+                acc,
+                gathered,
+                dealt,
+                contributors,
+            } = scratch;
             let list = &tiles[t];
-            let mut acc: TileGrads<F> = list
-                .iter()
-                .map(|&i| {
-                    let zero2 = [F::zero(); 2];
-                    (i, zero2, [F::zero(); 3], F::zero(), [F::zero(); 3], zero2)
-                })
-                .collect();
+            acc.clear();
+            acc.extend(list.iter().map(|&i| {
+                let zero2 = [F::zero(); 2];
+                (i, zero2, [F::zero(); 3], F::zero(), [F::zero(); 3], zero2)
+            }));
             let (ox, oy) = ((t as u32 % tx) * TILE, (t as u32 / tx) * TILE);
             // The forward pass's packing and sub-tile culling, so each pixel
             // meets exactly the Gaussians it composited, read from contiguous
             // memory; each keeps its slot in the tile's list.
-            let in_tile: Vec<(Packed<F>, u32)> = list
-                .iter()
-                .enumerate()
-                .map(|(slot, &g)| (packed[g as usize], slot as u32))
-                .collect();
-            let (sub_tiles, dealt) = SubTiles::deal(&in_tile, |(g, _)| g.5, ox, oy, width, height);
-            let mut contributors: LaneContributors<F> = Default::default();
+            gathered.clear();
+            gathered.extend(
+                (list.iter().enumerate()).map(|(slot, &g)| (packed[g as usize], slot as u32)),
+            );
+            let sub_tiles =
+                SubTiles::deal(gathered, |(g, _)| g.5, (ox, oy), (width, height), dealt);
             for (q, local) in dealt.iter().enumerate() {
                 let Some(pixels) = sub_tiles.pixels(q) else {
                     continue;
