@@ -908,6 +908,12 @@ pub fn render<F: Real>(
 mod tests {
     use super::*;
 
+    /// A repeatable value in [0, 1) for item `i` and stream `k`, to build
+    /// scenes from.
+    fn pseudo_random(i: usize, k: f64) -> f64 {
+        ((i as f64 * k).sin() * 43758.5453).fract().abs()
+    }
+
     fn camera() -> Camera<f64> {
         let id = [
             [1.0, 0.0, 0.0, 0.0],
@@ -961,7 +967,7 @@ mod tests {
         // not a multiple of the tile or sub-tile, against a per-pixel loop
         // over all visible Gaussians in depth order: equal to the bit.
         let n = 300;
-        let r = |i: usize, k: f64| ((i as f64 * k).sin() * 43758.5453).fract().abs();
+        let r = pseudo_random;
         let g = Gaussians {
             means: (0..n)
                 .map(|i| [r(i, 1.1) - 0.5, r(i, 2.3) - 0.5, 1.5 + r(i, 3.7)])
@@ -1032,7 +1038,7 @@ mod tests {
         // each list against the reached Gaussians whose box meets the tile,
         // sorted by depth and then by index.
         let n = 400;
-        let r = |i: usize, k: f64| ((i as f64 * k).sin() * 43758.5453).fract().abs();
+        let r = pseudo_random;
         let g = Gaussians {
             means: (0..n)
                 .map(|i| [r(i, 1.3) - 0.5, r(i, 2.9) - 0.5, [1.0, 1.5, 2.0][i % 3]])
