@@ -5,9 +5,9 @@
 //! gripper excluded), and the gradient of a weighted mean SSIM with respect
 //! to the rendered image, for the D-SSIM term of the loss.
 //!
-//! Training computes that SSIM and its gradient at every step, in f64: 24
-//! separable 11-tap blurs of the image. They were a third of a CPU training
-//! step at 320x240 and more at full size, so they run in bands of rows: a
+//! Training computes that SSIM and its gradient at every step: 24 separable
+//! 11-tap blurs of the image. They were a third of a CPU training step at
+//! 320x240 and more at full size, so they run in bands of rows: a
 //! band blurs horizontally only the rows its vertical taps reach (a ring of
 //! 11 rows a plane), so the blurred moments never exist as whole planes and
 //! a band's rows stay in cache. The row loops are also compiled for AVX2,
@@ -17,9 +17,51 @@
 //! path gives the plain loops' bits (`banded_ssim_sums_as_plain_pixel_loops_do_at_every_size`),
 //! and a trained model is the same to the byte. SSIM and gradient of one
 //! 640x480 image on one thread: 66 ms as whole planes, 47 ms banded, 30 ms
-//! with AVX2.
+//! with AVX2 (as measured then; 51 ms on a slower day of the same machine).
+//!
+//! The passes are generic over their float type ([`SsimFloat`]). Reported
+//! metrics use f64. The training loss uses f32, as gsplat's does: an AVX2
+//! vector holds eight lanes instead of four, so the same SSIM and gradient
+//! take 30 ms against 51 (one thread, 640x480, measured in one run), and a
+//! CPU training step at 640x480 on 50k Gaussians 128 ms against 144
+//! (`bench splat`, medians of five interleaved runs). The f32 figures stay within 1e-6 of
+//! the f64 value and 5e-5 of the largest gradient
+//! (`f32_ssim_and_gradient_agree_with_f64`).
 
 use rayon::prelude::*;
+
+use crate::Real;
+
+/// The float type SSIM is computed in: f64 for the reported metric, f32 for
+/// the training loss, whose blurs then fill twice the lanes of a vector (a
+/// CPU step 9-12% faster; gsplat's loss is f32 as well). The weighted total
+/// is summed in f64 either way.
+pub trait SsimFloat: Real {
+    fn of_f32(v: f32) -> Self;
+    fn wide(self) -> f64;
+}
+
+impl SsimFloat for f32 {
+    #[inline]
+    fn of_f32(v: f32) -> f32 {
+        v
+    }
+    #[inline]
+    fn wide(self) -> f64 {
+        self as f64
+    }
+}
+
+impl SsimFloat for f64 {
+    #[inline]
+    fn of_f32(v: f32) -> f64 {
+        v as f64
+    }
+    #[inline]
+    fn wide(self) -> f64 {
+        self
+    }
+}
 
 /// An RGB float image, row-major, values nominally in [0, 1].
 pub struct ImageView<'a> {
@@ -32,14 +74,14 @@ const C1: f64 = 0.01 * 0.01;
 const C2: f64 = 0.03 * 0.03;
 const RADIUS: usize = 5;
 
-fn window() -> [f64; 2 * RADIUS + 1] {
-    let mut w = [0.0; 2 * RADIUS + 1];
+fn window<S: SsimFloat>() -> [S; 2 * RADIUS + 1] {
+    let mut w = [0.0f64; 2 * RADIUS + 1];
     for (i, v) in w.iter_mut().enumerate() {
         let d = i as f64 - RADIUS as f64;
         *v = (-d * d / (2.0 * 1.5 * 1.5)).exp();
     }
     let s: f64 = w.iter().sum();
-    w.map(|v| v / s)
+    w.map(|v| S::c(v / s))
 }
 
 const TAPS: usize = 2 * RADIUS + 1;
@@ -47,9 +89,9 @@ const TAPS: usize = 2 * RADIUS + 1;
 /// One row blurred horizontally with zero padding: each output adds its
 /// in-bounds taps in window order, a tap at a time across the row.
 #[multiversion::multiversion(targets("x86_64+avx2"))]
-fn blur_row(window: &[f64; TAPS], row: &[f64], out: &mut [f64]) {
+fn blur_row<S: SsimFloat>(window: &[S; TAPS], row: &[S], out: &mut [S]) {
     let width = row.len();
-    out.fill(0.0);
+    out.fill(S::zero());
     for (k, &wk) in window.iter().enumerate() {
         let first = RADIUS.saturating_sub(k);
         let end = (width + RADIUS).saturating_sub(k).min(width);
@@ -61,7 +103,7 @@ fn blur_row(window: &[f64; TAPS], row: &[f64], out: &mut [f64]) {
             .iter_mut()
             .zip(&row[source..source + end - first])
         {
-            *o += wk * v;
+            *o = *o + wk * *v;
         }
     }
 }
@@ -71,18 +113,18 @@ fn blur_row(window: &[f64; TAPS], row: &[f64], out: &mut [f64]) {
 /// takes output row `y`. The horizontal pass keeps only the rows the
 /// vertical taps reach, so a band's working set stays in cache; a band
 /// blurs the RADIUS rows beyond each of its ends again.
-fn blur_band<const P: usize>(
+fn blur_band<S: SsimFloat, const P: usize>(
     width: usize,
     height: usize,
     (first, end): (usize, usize),
-    mut fill: impl FnMut(usize, &mut [Vec<f64>; P]),
-    mut each: impl FnMut(usize, &[Vec<f64>; P]),
+    mut fill: impl FnMut(usize, &mut [Vec<S>; P]),
+    mut each: impl FnMut(usize, &[Vec<S>; P]),
 ) {
-    let window = window();
-    let mut input: [Vec<f64>; P] = std::array::from_fn(|_| vec![0.0; width]);
-    let mut output: [Vec<f64>; P] = std::array::from_fn(|_| vec![0.0; width]);
+    let window = window::<S>();
+    let mut input: [Vec<S>; P] = std::array::from_fn(|_| vec![S::zero(); width]);
+    let mut output: [Vec<S>; P] = std::array::from_fn(|_| vec![S::zero(); width]);
     // Plane p's horizontally blurred row y sits in slot y mod TAPS.
-    let mut rows = vec![0.0; P * TAPS * width];
+    let mut rows = vec![S::zero(); P * TAPS * width];
     let slot = |p: usize, y: usize| (p * TAPS + y % TAPS) * width;
     let mut next = first.saturating_sub(RADIUS);
     for y in first..end {
@@ -95,7 +137,7 @@ fn blur_band<const P: usize>(
             next += 1;
         }
         // The rows this output row's taps reach, in window order.
-        let taps: Vec<(f64, usize)> = window
+        let taps: Vec<(S, usize)> = window
             .iter()
             .enumerate()
             .filter_map(|(k, &wk)| {
@@ -113,13 +155,13 @@ fn blur_band<const P: usize>(
 /// `out` = Σ weight · row over `taps` (weight, row index mod TAPS into
 /// `rows`), in the taps' order.
 #[multiversion::multiversion(targets("x86_64+avx2"))]
-fn sum_rows(taps: &[(f64, usize)], rows: &[f64], out: &mut [f64]) {
+fn sum_rows<S: SsimFloat>(taps: &[(S, usize)], rows: &[S], out: &mut [S]) {
     let width = out.len();
-    out.fill(0.0);
+    out.fill(S::zero());
     for &(wk, source) in taps {
         let at = source % TAPS * width;
         for (o, t) in out.iter_mut().zip(&rows[at..at + width]) {
-            *o += wk * t;
+            *o = *o + wk * *t;
         }
     }
 }
@@ -134,27 +176,27 @@ fn band_rows(height: usize) -> usize {
 
 /// Rows `first..end` of channel `c`'s blurred moments μx, μy, E[x²],
 /// E[y²], E[xy], handed to `each` a row at a time.
-fn moments_band(
+fn moments_band<S: SsimFloat>(
     x: &ImageView,
     y: &ImageView,
     c: usize,
     rows: (usize, usize),
-    each: impl FnMut(usize, &[Vec<f64>; 5]),
+    each: impl FnMut(usize, &[Vec<S>; 5]),
 ) {
     let width = x.width;
-    let fill = |row: usize, planes: &mut [Vec<f64>; 5]| {
+    let fill = |row: usize, planes: &mut [Vec<S>; 5]| {
         let pixels = row * width..(row + 1) * width;
         moment_inputs(&x.pixels[pixels.clone()], &y.pixels[pixels], c, planes);
     };
     blur_band(width, x.height, rows, fill, each);
 }
 
-/// One row of channel `c`'s inputs to the moments, in f64: x, y, x², y², xy.
+/// One row of channel `c`'s inputs to the moments: x, y, x², y², xy.
 #[multiversion::multiversion(targets("x86_64+avx2"))]
-fn moment_inputs(x: &[[f32; 3]], y: &[[f32; 3]], c: usize, planes: &mut [Vec<f64>; 5]) {
+fn moment_inputs<S: SsimFloat>(x: &[[f32; 3]], y: &[[f32; 3]], c: usize, planes: &mut [Vec<S>; 5]) {
     let [xs, ys, xx, yy, xy] = planes;
     for (i, (p, q)) in x.iter().zip(y).enumerate() {
-        let (a, b) = (p[c] as f64, q[c] as f64);
+        let (a, b) = (S::of_f32(p[c]), S::of_f32(q[c]));
         xs[i] = a;
         ys[i] = b;
         xx[i] = a * a;
@@ -190,12 +232,15 @@ pub fn psnr(a: &ImageView, b: &ImageView, mask: Option<&[bool]>) -> Option<f64> 
 
 /// SSIM at a pixel from its blurred moments (μx, μy, E[x²], E[y²], E[xy]),
 /// with the factors of its fraction: (SSIM, n1, n2, d1, d2), SSIM = n1·n2 / (d1·d2).
-fn ssim_at([mx, my, xx, yy, xy]: [f64; 5]) -> (f64, f64, f64, f64, f64) {
+#[inline]
+fn ssim_at<S: SsimFloat>([mx, my, xx, yy, xy]: [S; 5]) -> (S, S, S, S, S) {
+    let two = S::c(2.0);
+    let (c1, c2) = (S::c(C1), S::c(C2));
     let (sx, sy, sxy) = (xx - mx * mx, yy - my * my, xy - mx * my);
-    let n1 = 2.0 * mx * my + C1;
-    let n2 = 2.0 * sxy + C2;
-    let d1 = mx * mx + my * my + C1;
-    let d2 = sx + sy + C2;
+    let n1 = two * mx * my + c1;
+    let n2 = two * sxy + c2;
+    let d1 = mx * mx + my * my + c1;
+    let d2 = sx + sy + c2;
     (n1 * n2 / (d1 * d2), n1, n2, d1, d2)
 }
 
@@ -203,14 +248,15 @@ fn ssim_at([mx, my, xx, yy, xy]: [f64; 5]) -> (f64, f64, f64, f64, f64) {
 /// its weights: w·(A − 2B·μx − C·μy), w·B, w·C and w·SSIM, where
 /// A = ∂SSIM/∂μx, B = ∂SSIM/∂σx², C = ∂SSIM/∂σxy.
 #[multiversion::multiversion(targets("x86_64+avx2"))]
-fn gradient_terms(m: &[Vec<f64>; 5], weights: &[f64], [a, b, c, sw]: [&mut [f64]; 4]) {
+fn gradient_terms<S: SsimFloat>(m: &[Vec<S>; 5], weights: &[S], [a, b, c, sw]: [&mut [S]; 4]) {
+    let two = S::c(2.0);
     for (i, &w) in weights.iter().enumerate() {
         let (mx, my) = (m[0][i], m[1][i]);
         let (s, n1, n2, d1, d2) = ssim_at(std::array::from_fn(|p| m[p][i]));
-        let d_mx = 2.0 * my * n2 / (d1 * d2) - s * 2.0 * mx / d1;
+        let d_mx = two * my * n2 / (d1 * d2) - s * two * mx / d1;
         let d_sx = -s / d2;
-        let d_sxy = 2.0 * n1 / (d1 * d2);
-        a[i] = w * (d_mx - 2.0 * d_sx * mx - d_sxy * my);
+        let d_sxy = two * n1 / (d1 * d2);
+        a[i] = w * (d_mx - two * d_sx * mx - d_sxy * my);
         b[i] = w * d_sx;
         c[i] = w * d_sxy;
         sw[i] = s * w;
@@ -219,11 +265,11 @@ fn gradient_terms(m: &[Vec<f64>; 5], weights: &[f64], [a, b, c, sw]: [&mut [f64]
 
 /// Row bands of `planes` (each `width` pixels wide, `rows` rows a band),
 /// each with its plane index and first row, for the threads to share.
-fn plane_bands(
-    planes: &mut [Vec<f64>],
+fn plane_bands<T>(
+    planes: &mut [Vec<T>],
     width: usize,
     rows: usize,
-) -> Vec<(usize, usize, &mut [f64])> {
+) -> Vec<(usize, usize, &mut [T])> {
     planes
         .iter_mut()
         .enumerate()
@@ -248,7 +294,7 @@ fn ssim_maps(x: &ImageView, y: &ImageView) -> Vec<Vec<f64>> {
     plane_bands(&mut maps, width, rows)
         .into_par_iter()
         .for_each(|(c, first, map)| {
-            moments_band(x, y, c, (first, first + map.len() / width), |row, m| {
+            moments_band::<f64>(x, y, c, (first, first + map.len() / width), |row, m| {
                 let out = &mut map[(row - first) * width..][..width];
                 for (i, o) in out.iter_mut().enumerate() {
                     *o = ssim_at(std::array::from_fn(|p| m[p][i])).0;
@@ -298,12 +344,13 @@ fn mean_ssim(maps: &[Vec<f64>], mask: Option<&[bool]>) -> Option<f64> {
 /// each pixel's weighted SSIM and the three terms of its gradient,
 /// dL/dx_q = G⋆(w·(A − 2B·μx − C·μy)) + 2x_q·G⋆(w·B) + y_q·G⋆(w·C); the
 /// second blurs the terms into the gradient. Every value is summed in the
-/// order a pixel-by-pixel loop sums it, and the SSIM total in pixel order,
-/// so the result does not depend on the threads.
-pub fn weighted_ssim_and_gradient(
+/// order a pixel-by-pixel loop sums it, and the SSIM total in pixel order
+/// (in f64), so the result does not depend on the threads. `S` is the
+/// precision of the blurs and terms ([`SsimFloat`]).
+pub fn weighted_ssim_and_gradient<S: SsimFloat>(
     x: &ImageView,
     y: &ImageView,
-    weights: &[f64],
+    weights: &[S],
 ) -> (f64, Vec<[f32; 3]>) {
     let (width, height) = (x.width, x.height);
     let n = width * height;
@@ -312,8 +359,8 @@ pub fn weighted_ssim_and_gradient(
     }
     let rows = band_rows(height);
     // Per channel: the terms w·(A − 2B·μx − C·μy), w·B, w·C, and w·SSIM.
-    let mut terms: Vec<[Vec<f64>; 4]> = (0..3)
-        .map(|_| std::array::from_fn(|_| vec![0.0; n]))
+    let mut terms: Vec<[Vec<S>; 4]> = (0..3)
+        .map(|_| std::array::from_fn(|_| vec![S::zero(); n]))
         .collect();
     let chunk = rows * width;
     let tasks: Vec<_> = terms
@@ -343,9 +390,9 @@ pub fn weighted_ssim_and_gradient(
             );
         });
     });
-    let value = terms
-        .iter()
-        .fold(0.0, |sum, t| sum + t[3].iter().copied().sum::<f64>());
+    let value = terms.iter().fold(0.0, |sum, t| {
+        sum + t[3].iter().map(|v| v.wide()).sum::<f64>()
+    });
     let mut grad = vec![[0.0f32; 3]; n];
     grad.par_chunks_mut(chunk)
         .enumerate()
@@ -354,7 +401,7 @@ pub fn weighted_ssim_and_gradient(
             let end = first + out.len() / width;
             for (c, t) in terms.iter().enumerate() {
                 let planes = &t[..3];
-                let fill = |row: usize, input: &mut [Vec<f64>; 3]| {
+                let fill = |row: usize, input: &mut [Vec<S>; 3]| {
                     for (to, plane) in input.iter_mut().zip(planes) {
                         to.copy_from_slice(&plane[row * width..(row + 1) * width]);
                     }
@@ -362,10 +409,10 @@ pub fn weighted_ssim_and_gradient(
                 blur_band(width, height, (first, end), fill, |row, g| {
                     let at = row * width;
                     for i in 0..width {
-                        let xq = x.pixels[at + i][c] as f64;
-                        let yq = y.pixels[at + i][c] as f64;
-                        out[at - first * width + i][c] =
-                            (g[0][i] + 2.0 * xq * g[1][i] + yq * g[2][i]) as f32;
+                        let xq = S::of_f32(x.pixels[at + i][c]);
+                        let yq = S::of_f32(y.pixels[at + i][c]);
+                        let d = g[0][i] + S::c(2.0) * xq * g[1][i] + yq * g[2][i];
+                        out[at - first * width + i][c] = d.wide() as f32;
                     }
                 });
             }
@@ -431,21 +478,21 @@ mod tests {
     /// The SSIM and its gradient as plain loops over pixels, one thread:
     /// each sum in the order the banded passes must keep.
     mod reference {
-        use super::super::{C1, C2, RADIUS, window};
+        use super::super::{C1, C2, RADIUS, SsimFloat, window};
 
         /// One pass of the window along rows (`across`) or columns.
-        fn pass(width: usize, height: usize, src: &[f64], across: bool) -> Vec<f64> {
-            let w = window();
-            let mut out = vec![0.0; src.len()];
+        fn pass<S: SsimFloat>(width: usize, height: usize, src: &[S], across: bool) -> Vec<S> {
+            let w = window::<S>();
+            let mut out = vec![S::zero(); src.len()];
             for y in 0..height {
                 for x in 0..width {
                     let (n, at) = if across { (width, x) } else { (height, y) };
-                    let mut s = 0.0;
-                    for (k, wk) in w.iter().enumerate() {
+                    let mut s = S::zero();
+                    for (k, &wk) in w.iter().enumerate() {
                         let Some(i) = (at + k).checked_sub(RADIUS).filter(|&i| i < n) else {
                             continue;
                         };
-                        s += wk * src[if across { y * width + i } else { i * width + x }];
+                        s = s + wk * src[if across { y * width + i } else { i * width + x }];
                     }
                     out[y * width + x] = s;
                 }
@@ -453,47 +500,47 @@ mod tests {
             out
         }
 
-        fn blur(width: usize, height: usize, src: &[f64]) -> Vec<f64> {
+        fn blur<S: SsimFloat>(width: usize, height: usize, src: &[S]) -> Vec<S> {
             pass(width, height, &pass(width, height, src, true), false)
         }
 
         /// Per channel: the SSIM map and the three gradient terms before
         /// their blur, given the weights.
-        fn parts(
+        fn parts<S: SsimFloat>(
             w: usize,
             h: usize,
             x: &[[f32; 3]],
             y: &[[f32; 3]],
-            weights: &[f64],
+            weights: &[S],
             c: usize,
-        ) -> [Vec<f64>; 4] {
-            let xs: Vec<f64> = x.iter().map(|p| p[c] as f64).collect();
-            let ys: Vec<f64> = y.iter().map(|p| p[c] as f64).collect();
-            let times = |a: &[f64], b: &[f64]| -> Vec<f64> {
-                a.iter().zip(b).map(|(a, b)| a * b).collect()
-            };
+        ) -> [Vec<S>; 4] {
+            let xs: Vec<S> = x.iter().map(|p| S::of_f32(p[c])).collect();
+            let ys: Vec<S> = y.iter().map(|p| S::of_f32(p[c])).collect();
+            let times =
+                |a: &[S], b: &[S]| -> Vec<S> { a.iter().zip(b).map(|(&a, &b)| a * b).collect() };
+            let (two, c1, c2) = (S::c(2.0), S::c(C1), S::c(C2));
             let mx = blur(w, h, &xs);
             let my = blur(w, h, &ys);
             let xx = blur(w, h, &times(&xs, &xs));
             let yy = blur(w, h, &times(&ys, &ys));
             let xy = blur(w, h, &times(&xs, &ys));
-            let mut out: [Vec<f64>; 4] = std::array::from_fn(|_| vec![0.0; w * h]);
+            let mut out: [Vec<S>; 4] = std::array::from_fn(|_| vec![S::zero(); w * h]);
             for i in 0..w * h {
                 let (sx, sy, sxy) = (
                     xx[i] - mx[i] * mx[i],
                     yy[i] - my[i] * my[i],
                     xy[i] - mx[i] * my[i],
                 );
-                let n1 = 2.0 * mx[i] * my[i] + C1;
-                let n2 = 2.0 * sxy + C2;
-                let d1 = mx[i] * mx[i] + my[i] * my[i] + C1;
-                let d2 = sx + sy + C2;
+                let n1 = two * mx[i] * my[i] + c1;
+                let n2 = two * sxy + c2;
+                let d1 = mx[i] * mx[i] + my[i] * my[i] + c1;
+                let d2 = sx + sy + c2;
                 let s = n1 * n2 / (d1 * d2);
-                let d_mx = 2.0 * my[i] * n2 / (d1 * d2) - s * 2.0 * mx[i] / d1;
+                let d_mx = two * my[i] * n2 / (d1 * d2) - s * two * mx[i] / d1;
                 let d_sx = -s / d2;
-                let d_sxy = 2.0 * n1 / (d1 * d2);
+                let d_sxy = two * n1 / (d1 * d2);
                 out[0][i] = s;
-                out[1][i] = weights[i] * (d_mx - 2.0 * d_sx * mx[i] - d_sxy * my[i]);
+                out[1][i] = weights[i] * (d_mx - two * d_sx * mx[i] - d_sxy * my[i]);
                 out[2][i] = weights[i] * d_sx;
                 out[3][i] = weights[i] * d_sxy;
             }
@@ -510,22 +557,26 @@ mod tests {
                 .collect()
         }
 
-        pub fn weighted_and_gradient(
+        pub fn weighted_and_gradient<S: SsimFloat>(
             w: usize,
             h: usize,
             x: &[[f32; 3]],
             y: &[[f32; 3]],
-            weights: &[f64],
+            weights: &[S],
         ) -> (f64, Vec<[f32; 3]>) {
             let mut value = 0.0;
             let mut grad = vec![[0.0f32; 3]; w * h];
             for c in 0..3 {
                 let [s, a, b, cc] = parts(w, h, x, y, weights, c);
-                value += s.iter().zip(weights).map(|(s, w)| s * w).sum::<f64>();
+                value += s
+                    .iter()
+                    .zip(weights)
+                    .map(|(&s, &w)| (s * w).wide())
+                    .sum::<f64>();
                 let (ga, gb, gc) = (blur(w, h, &a), blur(w, h, &b), blur(w, h, &cc));
                 for q in 0..w * h {
-                    let (xq, yq) = (x[q][c] as f64, y[q][c] as f64);
-                    grad[q][c] = (ga[q] + 2.0 * xq * gb[q] + yq * gc[q]) as f32;
+                    let (xq, yq) = (S::of_f32(x[q][c]), S::of_f32(y[q][c]));
+                    grad[q][c] = (ga[q] + S::c(2.0) * xq * gb[q] + yq * gc[q]).wide() as f32;
                 }
             }
             (value, grad)
@@ -567,13 +618,24 @@ mod tests {
                 height: h,
                 pixels,
             };
-            let (value, grad) = weighted_ssim_and_gradient(&view(&x), &view(&y), &weights);
-            let (want_value, want_grad) = reference::weighted_and_gradient(w, h, &x, &y, &weights);
-            assert_eq!(value.to_bits(), want_value.to_bits(), "{w}x{h}: value");
             let bits = |g: &[[f32; 3]]| -> Vec<[u32; 3]> {
                 g.iter().map(|p| p.map(f32::to_bits)).collect()
             };
+            // In both precisions: f64 for the metric, f32 for training.
+            let weights32: Vec<f32> = weights.iter().map(|&v| v as f32).collect();
+            let (value, grad) = weighted_ssim_and_gradient(&view(&x), &view(&y), &weights);
+            let (want_value, want_grad) = reference::weighted_and_gradient(w, h, &x, &y, &weights);
+            assert_eq!(value.to_bits(), want_value.to_bits(), "{w}x{h}: value");
             assert_eq!(bits(&grad), bits(&want_grad), "{w}x{h}: gradient");
+            let (value32, grad32) = weighted_ssim_and_gradient(&view(&x), &view(&y), &weights32);
+            let (want_value32, want_grad32) =
+                reference::weighted_and_gradient(w, h, &x, &y, &weights32);
+            assert_eq!(
+                value32.to_bits(),
+                want_value32.to_bits(),
+                "{w}x{h}: f32 value"
+            );
+            assert_eq!(bits(&grad32), bits(&want_grad32), "{w}x{h}: f32 gradient");
             let maps = ssim_maps(&view(&x), &view(&y));
             let want_maps = reference::maps(w, h, &x, &y);
             for (m, r) in maps.iter().zip(&want_maps) {
@@ -640,6 +702,37 @@ mod tests {
                     grad[q][c]
                 );
             }
+        }
+    }
+
+    /// Training's f32 SSIM agrees with the f64 one (checked above against
+    /// central differences) to f32's rounding, on a photo-sized image with
+    /// zero-weight (gripper) pixels.
+    #[test]
+    fn f32_ssim_and_gradient_agree_with_f64() {
+        let (w, h) = (96, 80);
+        let x = pattern(w, h, 0.0);
+        let y = pattern(w, h, 0.7);
+        let n = (w * h) as f64;
+        let weights: Vec<f64> = (0..w * h)
+            .map(|i| if i % 11 < 3 { 0.0 } else { 1.0 / n })
+            .collect();
+        let weights32: Vec<f32> = weights.iter().map(|&v| v as f32).collect();
+        let view = |pixels| ImageView {
+            width: w,
+            height: h,
+            pixels,
+        };
+        let (v64, g64) = weighted_ssim_and_gradient(&view(&x), &view(&y), &weights);
+        let (v32, g32) = weighted_ssim_and_gradient(&view(&x), &view(&y), &weights32);
+        assert!((v64 - v32).abs() < 1e-6 * v64.abs(), "{v64} vs {v32}");
+        let largest = g64.iter().flatten().fold(0.0f32, |m, v| m.max(v.abs()));
+        assert!(largest > 0.0);
+        for (a, b) in g64.iter().flatten().zip(g32.iter().flatten()) {
+            assert!(
+                (a - b).abs() <= 5e-5 * largest,
+                "{a} vs {b} (largest {largest})"
+            );
         }
     }
 }

@@ -578,10 +578,8 @@ pub fn step_loss(
         }
         lo += weight[i] * (r.alpha[i] - view.object[i]).abs() / wsum;
     }
-    let ssim_weights: Vec<f64> = weight
-        .par_iter()
-        .map(|&x| x as f64 / (3.0 * wsum as f64))
-        .collect();
+    // The SSIM term in f32, as gsplat computes it (see `SsimFloat`).
+    let ssim_weights: Vec<f32> = weight.par_iter().map(|&x| x / (3.0 * wsum)).collect();
     let rendered = ImageView {
         width: w,
         height: h,
