@@ -17,15 +17,15 @@
 //! path gives the plain loops' bits (`banded_ssim_sums_as_plain_pixel_loops_do_at_every_size`),
 //! and a trained model is the same to the byte. SSIM and gradient of one
 //! 640x480 image on one thread: 66 ms as whole planes, 47 ms banded, 30 ms
-//! with AVX2 (as measured then; 51 ms on a slower day of the same machine).
+//! with AVX2.
 //!
 //! The passes are generic over their float type ([`SsimFloat`]). Reported
 //! metrics use f64. The training loss uses f32, as gsplat's does: an AVX2
-//! vector holds eight lanes instead of four, so the same SSIM and gradient
-//! take 30 ms against 51 (one thread, 640x480, measured in one run), and a
-//! CPU training step at 640x480 on 50k Gaussians 128 ms against 144
-//! (`bench splat`, medians of five interleaved runs). The f32 figures stay within 1e-6 of
-//! the f64 value and 5e-5 of the largest gradient
+//! vector holds eight lanes instead of four. Measured in one run (one
+//! thread, 640x480), the SSIM and gradient took 30 ms in f32 against 51 in
+//! f64; a CPU training step at 640x480 on 50k Gaussians took 128 ms against
+//! 144 (`bench splat`, medians of five interleaved runs). The f32 figures
+//! stay within 1e-6 of the f64 value and 5e-5 of the largest gradient
 //! (`f32_ssim_and_gradient_agree_with_f64`).
 
 use rayon::prelude::*;
@@ -33,11 +33,13 @@ use rayon::prelude::*;
 use crate::Real;
 
 /// The float type SSIM is computed in: f64 for the reported metric, f32 for
-/// the training loss, whose blurs then fill twice the lanes of a vector (a
-/// CPU step 9-12% faster; gsplat's loss is f32 as well). The weighted total
-/// is summed in f64 either way.
+/// the training loss, whose blurs then fill twice the lanes of a vector
+/// (gsplat's loss is f32 as well). The weighted total is summed in f64
+/// either way.
 pub trait SsimFloat: Real {
+    /// A pixel value (images are f32) in this type.
     fn of_f32(v: f32) -> Self;
+    /// This value in f64, for totals and the f32 gradient's rounding.
     fn wide(self) -> f64;
 }
 
