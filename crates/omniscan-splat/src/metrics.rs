@@ -395,6 +395,7 @@ pub fn weighted_ssim_and_gradient<S: SsimFloat>(
     let value = terms.iter().fold(0.0, |sum, t| {
         sum + t[3].iter().map(|v| v.wide()).sum::<f64>()
     });
+    let two = S::c(2.0);
     let mut grad = vec![[0.0f32; 3]; n];
     grad.par_chunks_mut(chunk)
         .enumerate()
@@ -413,7 +414,7 @@ pub fn weighted_ssim_and_gradient<S: SsimFloat>(
                     for i in 0..width {
                         let xq = S::of_f32(x.pixels[at + i][c]);
                         let yq = S::of_f32(y.pixels[at + i][c]);
-                        let d = g[0][i] + S::c(2.0) * xq * g[1][i] + yq * g[2][i];
+                        let d = g[0][i] + two * xq * g[1][i] + yq * g[2][i];
                         out[at - first * width + i][c] = d.wide() as f32;
                     }
                 });
