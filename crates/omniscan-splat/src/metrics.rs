@@ -76,7 +76,9 @@ const C1: f64 = 0.01 * 0.01;
 const C2: f64 = 0.03 * 0.03;
 const RADIUS: usize = 5;
 
-fn window<S: SsimFloat>() -> [S; 2 * RADIUS + 1] {
+/// The SSIM window's taps (normalised in f64, then rounded to `S`); the GPU
+/// loss blurs with the same f32 values.
+pub(crate) fn window<S: SsimFloat>() -> [S; 2 * RADIUS + 1] {
     let mut w = [0.0f64; 2 * RADIUS + 1];
     for (i, v) in w.iter_mut().enumerate() {
         let d = i as f64 - RADIUS as f64;

@@ -28,7 +28,7 @@ use rayon::prelude::*;
 
 use crate::backend::Renderer;
 use crate::backward::backward_binned;
-use crate::gpu::training::{HostState, LossTarget, McmcStep, StepRates};
+use crate::gpu::training::{HostState, LossTarget, McmcStep, StepRates, ViewTargets};
 use crate::metrics::{ImageView, psnr, weighted_ssim_and_gradient};
 use crate::raster::{Camera, bin_tiles, project, rasterize_binned};
 use crate::sh::{C0, coefficients};
@@ -785,6 +785,11 @@ pub fn train_resumable(
         }
         Renderer::Cpu => None,
     };
+    // On a GPU the views' loss targets stay on the device too, as they fit.
+    let mut view_targets = match renderer {
+        Renderer::Gpu(gpu) => Some(ViewTargets::new(views.len(), gpu.view_memory())),
+        Renderer::Cpu => None,
+    };
     let mut scratch = None;
     for step in first_step..=config.steps {
         if order.is_empty() {
@@ -793,7 +798,7 @@ pub fn train_resumable(
                 order.swap(i, rng.random_range(0..=i));
             }
         }
-        let view = views[order.pop().unwrap()].pixels_in(&mut scratch);
+        let index = order.pop().unwrap();
         let degree = (step / config.sh_interval.max(1))
             .min(config.max_sh_degree)
             .min(s.sh_degree);
@@ -828,12 +833,14 @@ pub fn train_resumable(
             }),
             absolute_gradients: config.absolute_gradients,
         };
-        if let (Renderer::Gpu(gpu), Some(device)) = (renderer, device_state.as_ref()) {
-            let frame = gpu.forward_state(device, &view.camera, &settings, degree, false)?;
+        if let (Renderer::Gpu(gpu), Some(device), Some(targets)) =
+            (renderer, device_state.as_ref(), view_targets.as_mut())
+        {
+            let target = targets.target(gpu, index, &views[index], &mut scratch)?;
+            let camera = views[index].camera();
+            let frame = gpu.forward_state(device, camera, &settings, degree, false)?;
             let target = LossTarget {
-                image: &view.image,
-                object: &view.object,
-                excluded: &view.excluded,
+                target,
                 background,
                 lambda_ssim: config.lambda_ssim,
                 lambda_opacity: config.lambda_opacity,
@@ -841,6 +848,7 @@ pub fn train_resumable(
             let report = gpu.train_step(device, &frame, &target, &rates, t)?;
             progress(step, report.loss, report.psnr);
         } else {
+            let view = views[index].pixels_in(&mut scratch);
             let g = s.gaussians_up_to::<f32>(degree);
             let p = project(&g, &view.camera, &settings);
             let (width, height) = (view.camera.width, view.camera.height);

@@ -330,21 +330,18 @@ fn gpu_gradients_match_the_cpu_reference() {
     }
 }
 
-#[test]
-#[ignore = "needs a Vulkan device (lavapipe: apt-get install mesa-vulkan-drivers)"]
-fn training_on_the_gpu_follows_the_cpu_reference() {
-    use omniscan_splat::Splats;
-    use omniscan_splat::backend::Renderer;
-    use omniscan_splat::train::{TrainConfig, train};
-    use omniscan_splat::views::View;
-    // Targets: a random scene seen by four cameras around it.
+/// A random scene seen by cameras of the given sizes, one shifted along x
+/// from the last: training views with object masks and nothing excluded.
+fn training_views(sizes: &[(u32, u32)]) -> Vec<omniscan_splat::views::View> {
     let truth = scene(400, None, 31);
-    let views: Vec<View> = (0..4)
-        .map(|i| {
-            let mut cam = camera(64, 48);
+    sizes
+        .iter()
+        .enumerate()
+        .map(|(i, &(width, height))| {
+            let mut cam = camera(width, height);
             cam.viewmat[0][3] += 0.1 * i as f32;
             let (_, r) = render(&truth, &cam, &Settings::default());
-            View {
+            omniscan_splat::views::View {
                 camera: cam,
                 image: r.rgb.clone(),
                 object: r
@@ -356,13 +353,16 @@ fn training_on_the_gpu_follows_the_cpu_reference() {
                 depth: Vec::new(),
             }
         })
-        .collect();
-    // Start from a perturbed copy of another random scene.
+        .collect()
+}
+
+/// A perturbed copy of another random scene, as a model to train from.
+fn training_start() -> omniscan_splat::Splats {
     let start = scene(300, Some(1), 37);
     let Colors::Sh { coeffs, .. } = &start.colors else {
         panic!("SH scene")
     };
-    let splats = Splats {
+    omniscan_splat::Splats {
         means: start.means.clone(),
         log_scales: start.scales.iter().map(|s| s.map(f32::ln)).collect(),
         quats: start.quats.clone(),
@@ -375,14 +375,58 @@ fn training_on_the_gpu_follows_the_cpu_reference() {
         sh: coeffs.clone(),
         antialiased: false,
         appearance: Appearance::ViewDirection,
-    };
-    let adaptive = TrainConfig {
+    }
+}
+
+/// Every learning rate zero (Adam leaves the values as they are), with
+/// MCMC's terms where given.
+fn frozen(
+    mcmc: Option<omniscan_splat::gpu::training::McmcStep>,
+) -> omniscan_splat::gpu::training::StepRates {
+    omniscan_splat::gpu::training::StepRates {
+        means: 0.0,
+        log_scales: 0.0,
+        quats: 0.0,
+        opacities: 0.0,
+        sh_dc: 0.0,
+        sh_rest: 0.0,
+        mcmc,
+        absolute_gradients: false,
+    }
+}
+
+/// Adaptive densification at steps 10 and 20, the SH degree rising every 10
+/// steps: a short run that takes every path of a long one.
+fn densifying(steps: usize) -> omniscan_splat::train::TrainConfig {
+    omniscan_splat::train::TrainConfig {
         densify_from: 10,
         densify_every: 10,
         densify_until: 20,
         sh_interval: 10,
-        ..TrainConfig::with_steps(30)
-    };
+        ..omniscan_splat::train::TrainConfig::with_steps(steps)
+    }
+}
+
+/// Every step's loss on the GPU within 1e-3 (relative) of the CPU's.
+fn assert_losses_follow(label: &str, cpu: &[f32], gpu: &[f32]) {
+    assert_eq!(cpu.len(), gpu.len(), "{label}: the same number of steps");
+    for (step, (a, b)) in cpu.iter().zip(gpu).enumerate() {
+        assert!(
+            (a - b).abs() <= 1e-3 * a.abs().max(1e-3),
+            "{label} step {step}: loss {a} on the CPU, {b} on the GPU"
+        );
+    }
+}
+
+#[test]
+#[ignore = "needs a Vulkan device (lavapipe: apt-get install mesa-vulkan-drivers)"]
+fn training_on_the_gpu_follows_the_cpu_reference() {
+    use omniscan_splat::Splats;
+    use omniscan_splat::backend::Renderer;
+    use omniscan_splat::train::{TrainConfig, train};
+    let views = training_views(&[(64, 48); 4]);
+    let splats = training_start();
+    let adaptive = densifying(30);
     // AbsGS's statistic from the device's absolute sums.
     let absolute = adaptive.with_absolute_gradients();
     // MCMC: penalties in Adam, the noise kernel, relocation and growth on the host.
@@ -428,12 +472,7 @@ fn training_on_the_gpu_follows_the_cpu_reference() {
             gpu.len(),
             "{label}: densification took the same decisions"
         );
-        for (step, (a, b)) in cpu_losses.iter().zip(&gpu_losses).enumerate() {
-            assert!(
-                (a - b).abs() <= 1e-3 * a.abs().max(1e-3),
-                "{label} step {step}: loss {a} on the CPU, {b} on the GPU"
-            );
-        }
+        assert_losses_follow(label, &cpu_losses, &gpu_losses);
         let worst = cpu
             .means
             .iter()
@@ -445,6 +484,106 @@ fn training_on_the_gpu_follows_the_cpu_reference() {
     }
 }
 
+/// The trainer keeps the loss targets of as many views as its budget holds on
+/// the device and sends the others at each of their steps; with views of two
+/// sizes the loss's working buffers change size from step to step. Kept or
+/// sent, every step's loss follows the CPU's.
+#[test]
+#[ignore = "needs a Vulkan device (lavapipe: apt-get install mesa-vulkan-drivers)"]
+fn views_kept_on_the_device_or_sent_each_step_train_alike() {
+    use omniscan_splat::backend::Renderer;
+    use omniscan_splat::gpu::training::{DEFAULT_VIEW_MEMORY, ViewTargets};
+    use omniscan_splat::train::train;
+    let views = training_views(&[(64, 48), (48, 36), (64, 48), (48, 36)]);
+    // A target is 5 floats a pixel.
+    let bytes = |(w, h): (u64, u64)| 20 * w * h;
+    let first_two = bytes((64, 48)) + bytes((48, 36));
+    let gpu = renderer();
+    for (budget, kept) in [(0, (0, 0)), (first_two, (2, first_two))] {
+        let mut targets = ViewTargets::new(views.len(), budget);
+        let mut scratch = None;
+        for _ in 0..2 {
+            for (i, view) in views.iter().enumerate() {
+                targets.target(&gpu, i, view, &mut scratch).unwrap();
+            }
+        }
+        assert_eq!(targets.kept(), kept, "budget {budget} bytes");
+    }
+    let config = densifying(24);
+    let mut cpu_losses = Vec::new();
+    train(
+        &views,
+        training_start(),
+        &config,
+        &Renderer::Cpu,
+        &mut |_, loss, _| cpu_losses.push(loss),
+    )
+    .unwrap();
+    for budget in [0, first_two, DEFAULT_VIEW_MEMORY] {
+        let mut gpu = renderer();
+        gpu.set_view_memory(budget);
+        let mut gpu_losses = Vec::new();
+        train(
+            &views,
+            training_start(),
+            &config,
+            &Renderer::Gpu(Box::new(gpu)),
+            &mut |_, loss, _| gpu_losses.push(loss),
+        )
+        .unwrap();
+        assert_losses_follow(&format!("budget {budget}"), &cpu_losses, &gpu_losses);
+    }
+}
+
+/// One device steps through views of changing sizes, smaller and larger
+/// than its last: each step's loss is the CPU's for that view (the loss's
+/// working buffers are made again when the size changes).
+#[test]
+#[ignore = "needs a Vulkan device (lavapipe: apt-get install mesa-vulkan-drivers)"]
+fn the_loss_follows_each_views_size() {
+    use omniscan_splat::gpu::training::{HostState, LossTarget};
+    use omniscan_splat::train::{TrainConfig, step_loss};
+    let views = training_views(&[(48, 36), (64, 48), (32, 24), (64, 48)]);
+    let splats = training_start();
+    let gpu = renderer();
+    let state = gpu.upload_state(&HostState::fresh(splats.clone())).unwrap();
+    // Every rate zero: the model stays as it is from step to step.
+    let rates = frozen(None);
+    let config = TrainConfig::with_steps(1);
+    let background = [0.2, 0.5, 0.7];
+    let settings = splats.render_settings(background);
+    let g = splats.gaussians_up_to::<f32>(1);
+    for (i, view) in views.iter().enumerate() {
+        let frame = gpu
+            .forward_state(&state, &view.camera, &settings, 1, false)
+            .unwrap();
+        let target = gpu.upload_target(view).unwrap();
+        let report = gpu
+            .train_step(
+                &state,
+                &frame,
+                &LossTarget {
+                    target: &target,
+                    background,
+                    lambda_ssim: config.lambda_ssim,
+                    lambda_opacity: config.lambda_opacity,
+                },
+                &rates,
+                i as i32 + 1,
+            )
+            .unwrap();
+        let (_, r) = render(&g, &view.camera, &settings);
+        let cpu = step_loss(view, &r, background, &config).loss;
+        assert!(
+            (report.loss - cpu).abs() <= 1e-4 * cpu.abs(),
+            "view {i} ({}x{}): loss {} on the GPU, {cpu} on the CPU",
+            view.camera.width,
+            view.camera.height,
+            report.loss
+        );
+    }
+}
+
 /// MCMC's position noise: the device's kernel draws the same normals from
 /// the same hash as the CPU's `mcmc::add_noise`, and moves the same splats
 /// (opacities from 0.0005 to 0.02 span the gate from open to shut).
@@ -452,8 +591,9 @@ fn training_on_the_gpu_follows_the_cpu_reference() {
 #[ignore = "needs a Vulkan device (lavapipe: apt-get install mesa-vulkan-drivers)"]
 fn mcmc_noise_on_the_gpu_matches_the_cpu() {
     use omniscan_splat::Splats;
-    use omniscan_splat::gpu::training::{HostState, LossTarget, McmcStep, StepRates};
+    use omniscan_splat::gpu::training::{HostState, LossTarget, McmcStep};
     use omniscan_splat::mcmc;
+    use omniscan_splat::views::View;
     let g = scene(300, Some(1), 41);
     let Colors::Sh { coeffs, .. } = &g.colors else {
         panic!("SH scene")
@@ -475,16 +615,7 @@ fn mcmc_noise_on_the_gpu_matches_the_cpu() {
         appearance: Appearance::ViewDirection,
     };
     let gpu = renderer();
-    let k = splats.sh_coefficients();
-    let state = gpu
-        .upload_state(&HostState {
-            moments: [3 * n, 3 * n, 4 * n, n, 3 * k * n]
-                .map(|len| (vec![0.0; len], vec![0.0; len])),
-            grad_sum: vec![0.0; n],
-            grad_count: vec![0; n],
-            splats: splats.clone(),
-        })
-        .unwrap();
+    let state = gpu.upload_state(&HostState::fresh(splats.clone())).unwrap();
     let cam = camera(64, 48);
     let pixels = (cam.width * cam.height) as usize;
     let settings = Settings::default();
@@ -493,28 +624,23 @@ fn mcmc_noise_on_the_gpu_matches_the_cpu() {
         .unwrap();
     let (seed, step, rate, extent) = (7u64, 12usize, 1.6e-4f32, 0.5f32);
     // Every learning rate zero: Adam leaves the values as they are, and the noise alone moves the means.
-    let rates = StepRates {
-        means: 0.0,
-        log_scales: 0.0,
-        quats: 0.0,
-        opacities: 0.0,
-        sh_dc: 0.0,
-        sh_rest: 0.0,
-        mcmc: Some(McmcStep {
-            opacity_penalty: 0.0,
-            scale_penalty: 0.0,
-            noise_scale: mcmc::noise_scale(rate, extent),
-            seed: mcmc::noise_seed(seed),
-            step: step as u32,
-        }),
-        absolute_gradients: false,
+    let rates = frozen(Some(McmcStep {
+        opacity_penalty: 0.0,
+        scale_penalty: 0.0,
+        noise_scale: mcmc::noise_scale(rate, extent),
+        seed: mcmc::noise_seed(seed),
+        step: step as u32,
+    }));
+    let view = View {
+        camera: cam,
+        image: vec![[0.5f32; 3]; pixels],
+        object: vec![1.0f32; pixels],
+        excluded: vec![0.0f32; pixels],
+        depth: Vec::new(),
     };
-    let image = vec![[0.5f32; 3]; pixels];
-    let (object, excluded) = (vec![1.0f32; pixels], vec![0.0f32; pixels]);
+    let kept = gpu.upload_target(&view).unwrap();
     let target = LossTarget {
-        image: &image,
-        object: &object,
-        excluded: &excluded,
+        target: &kept,
         background: [0.0; 3],
         lambda_ssim: 0.2,
         lambda_opacity: 1.0,

@@ -211,16 +211,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                     device.render(g, camera, &settings)?;
                     Ok(())
                 })?;
-                let splats = splats_from(g);
-                let k = splats.sh_coefficients();
-                let n = splats.len();
-                let host = omniscan_splat::gpu::training::HostState {
-                    moments: [3 * n, 3 * n, 4 * n, n, 3 * k * n]
-                        .map(|len| (vec![0.0; len], vec![0.0; len])),
-                    grad_sum: vec![0.0; n],
-                    grad_count: vec![0; n],
-                    splats,
-                };
+                let host = omniscan_splat::gpu::training::HostState::fresh(splats_from(g));
                 let state = device.upload_state(&host)?;
                 let rates = omniscan_splat::gpu::training::StepRates {
                     means: 1e-5,
@@ -232,10 +223,10 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                     mcmc: None,
                     absolute_gradients: false,
                 };
+                // Sent once, as training keeps its views' targets on the device.
+                let kept = device.upload_target(&view)?;
                 let target = omniscan_splat::gpu::training::LossTarget {
-                    image: &view.image,
-                    object: &view.object,
-                    excluded: &view.excluded,
+                    target: &kept,
                     background: settings.background,
                     lambda_ssim: config.lambda_ssim,
                     lambda_opacity: config.lambda_opacity,

@@ -162,6 +162,9 @@ pub struct TrainArgs {
     /// Read the views even where they need more memory than the system has available (with swap, say); without it such a set is refused before reading, naming the --downscale that fits.
     #[arg(long)]
     pub no_memory_check: bool,
+    /// On a GPU: how much of the views' loss targets (20 bytes a pixel) stays on the device, gigabytes; a kept view is sent once, the others at each of their steps.
+    #[arg(long, default_value_t = omniscan_splat::gpu::training::DEFAULT_VIEW_MEMORY as f64 / 1e9)]
+    pub gpu_view_memory_gb: f64,
     #[arg(long)]
     pub json: bool,
 }
@@ -280,6 +283,12 @@ pub fn train_capture(args: &TrainArgs) -> Result<serde_json::Value> {
     if args.max_splats == 0 {
         bail!("--max-splats must be at least 1");
     }
+    if !(args.gpu_view_memory_gb.is_finite() && args.gpu_view_memory_gb >= 0.0) {
+        bail!(
+            "--gpu-view-memory-gb must be a finite number, 0 or more, got {}",
+            args.gpu_view_memory_gb
+        );
+    }
     if args.init.is_none()
         && args.init_right.is_none()
         && !(1..=args.max_splats).contains(&args.initial_points)
@@ -353,7 +362,7 @@ pub fn train_capture(args: &TrainArgs) -> Result<serde_json::Value> {
         .progress_chars("=> "),
     );
     let mut recent = Vec::new();
-    let renderer = match Renderer::new(args.backend)? {
+    let mut renderer = match Renderer::new(args.backend)? {
         // `auto` falls back to the CPU on a GPU that can render but not train.
         Renderer::Gpu(gpu) if args.backend == Backend::Auto && !gpu.can_train() => {
             eprintln!(
@@ -364,6 +373,9 @@ pub fn train_capture(args: &TrainArgs) -> Result<serde_json::Value> {
         }
         r => r,
     };
+    if let Renderer::Gpu(gpu) = &mut renderer {
+        gpu.set_view_memory((args.gpu_view_memory_gb * 1e9) as u64);
+    }
     eprintln!("training on {}", renderer.describe());
     // A nerfstudio set's own points (`ply_file_path`) start it, as in
     // nerfstudio, unless --init names others.

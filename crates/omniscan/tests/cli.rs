@@ -650,6 +650,14 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
         (&["--position-lr", "NaN"][..], "--position-lr must be"),
         (&["--sh-rest-lr=-1"][..], "--sh-rest-lr must be"),
         (
+            &["--gpu-view-memory-gb", "NaN"][..],
+            "--gpu-view-memory-gb must be",
+        ),
+        (
+            &["--gpu-view-memory-gb=-1"][..],
+            "--gpu-view-memory-gb must be",
+        ),
+        (
             &["--densification", "mcmc", "--absgrad"][..],
             "MCMC does not use",
         ),

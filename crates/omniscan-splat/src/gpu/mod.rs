@@ -73,6 +73,10 @@ pub struct GpuRenderer {
     backward: Option<(wgpu::ComputePipeline, wgpu::ComputePipeline)>,
     /// The optimiser's kernels (with the backward ones).
     optimise: Option<training::OptimiseKernels>,
+    /// The training loss's working buffers, kept for the next step.
+    loss_buffers: std::sync::Mutex<Option<training::LossBuffers>>,
+    /// How many bytes of the views' loss targets training keeps on the device.
+    view_memory: u64,
 }
 
 /// Gaussians on the device, as the kernels read them: activated scales and
@@ -267,6 +271,8 @@ impl GpuRenderer {
             rasterize: pipeline(&raster_module, "main"),
             backward,
             optimise,
+            loss_buffers: std::sync::Mutex::new(None),
+            view_memory: training::DEFAULT_VIEW_MEMORY,
             device,
             queue,
             info,
@@ -280,6 +286,17 @@ impl GpuRenderer {
     /// The adapter's name and API, e.g. "NVIDIA H100 (Vulkan)".
     pub fn adapter(&self) -> String {
         format!("{} ({:?})", self.info.name, self.info.backend)
+    }
+
+    /// How many bytes of the views' loss targets training keeps on the device
+    /// (the rest are sent at each of their steps).
+    pub fn view_memory(&self) -> u64 {
+        self.view_memory
+    }
+
+    /// Sets [`GpuRenderer::view_memory`].
+    pub fn set_view_memory(&mut self, bytes: u64) {
+        self.view_memory = bytes;
     }
 
     /// Whether the device can train (the backward kernels need subgroup operations).
