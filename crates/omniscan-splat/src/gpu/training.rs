@@ -156,6 +156,8 @@ pub struct ViewTargets {
     passing: Option<DeviceTarget>,
     /// Set when the device refused memory for a target: nothing more is kept.
     device_full: bool,
+    /// Set when a view's target first did not fit the budget.
+    over_budget: bool,
 }
 
 impl ViewTargets {
@@ -167,6 +169,7 @@ impl ViewTargets {
             budget,
             passing: None,
             device_full: false,
+            over_budget: false,
         }
     }
 
@@ -202,10 +205,17 @@ impl ViewTargets {
                 None => {
                     if fits {
                         self.device_full = true;
-                        tracing::info!(
-                            "GPU backend: the device has no room for more views' targets ({} kept, {:.2} GB); the rest are sent at each step",
+                        tracing::warn!(
+                            "GPU backend: the device has no memory for more views' targets ({} kept, {:.2} GB); the rest are sent at each of their steps (a smaller --gpu-view-memory-gb leaves more room for the model)",
                             self.kept().0,
                             self.kept_bytes as f64 / 1e9
+                        );
+                    } else if !self.over_budget {
+                        self.over_budget = true;
+                        tracing::info!(
+                            "GPU backend: the views' targets outgrow their {:.2} GB budget ({} kept); the rest are sent at each of their steps",
+                            self.budget as f64 / 1e9,
+                            self.kept().0
                         );
                     }
                     let buffer = match self.passing.take() {
@@ -343,7 +353,7 @@ impl GpuRenderer {
 
     /// `view`'s loss target, written into `buffer` (of [`target_bytes`] for
     /// its pixels): per pixel the photo's colour, its object coverage and its
-    /// exclusion, packed straight into the queue's staging memory.
+    /// exclusion.
     fn fill_target(&self, buffer: wgpu::Buffer, view: &View) -> Result<DeviceTarget, SplatError> {
         let n = pixels_of(&view.camera);
         if view.image.len() != n || view.object.len() != n || view.excluded.len() != n {
