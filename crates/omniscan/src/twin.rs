@@ -55,6 +55,9 @@ pub struct TwinArgs {
     /// Where training runs: auto (a real GPU when there is one, else the CPU), cpu, or gpu.
     #[arg(long, default_value = "auto")]
     pub backend: omniscan_splat::backend::Backend,
+    /// On a GPU: how much of the views' loss targets stays on the device, gigabytes (as `train`'s; it changes no result, so a finished stage is reused whatever it was).
+    #[arg(long, default_value_t = omniscan_splat::gpu::training::DEFAULT_VIEW_MEMORY as f64 / 1e9)]
+    pub gpu_view_memory_gb: f64,
     /// Print the summary as JSON.
     #[arg(long)]
     pub json: bool,
@@ -228,6 +231,7 @@ pub fn build_twin(args: &TwinArgs) -> Result<Value> {
             |command, resume| {
                 let mut parsed = TrainCommand::try_parse_from(command)?.args;
                 parsed.resume = resume;
+                parsed.gpu_view_memory_gb = args.gpu_view_memory_gb;
                 if resume {
                     eprintln!("{arm}: resuming from {}", checkpoint.display());
                 } else {
