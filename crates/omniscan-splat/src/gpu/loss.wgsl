@@ -122,8 +122,9 @@ fn prepare(
 const RADIUS: i32 = 5;
 
 // Tap k (−5..5) of the normalised Gaussian window (σ = 1.5), as the host
-// computed it: evaluated here, the window cost 132 exponentials per blurred
-// value and differed from the CPU's in the last bits.
+// computed it for the CPU's SSIM: evaluated here in f32 (132 exponentials
+// per blurred value, unless the shader compiler folds them) it differed
+// from the CPU's taps in the last bits.
 fn window(k: i32) -> f32 {
     let tap = u32(k + RADIUS);
     return params.window[tap / 4u][tap % 4u];
