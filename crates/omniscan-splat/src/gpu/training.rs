@@ -38,6 +38,8 @@ pub(crate) struct OptimiseKernels {
     blur: wgpu::ComputePipeline,
     ssim_terms: wgpu::ComputePipeline,
     gradient: wgpu::ComputePipeline,
+    /// The CPU SSIM's f32 window taps, as `loss.wgsl`'s `Params.window` holds them.
+    window: [[f32; 4]; 3],
 }
 
 impl OptimiseKernels {
@@ -55,6 +57,13 @@ impl OptimiseKernels {
             blur: pipeline(&loss, "blur"),
             ssim_terms: pipeline(&loss, "ssim_terms"),
             gradient: pipeline(&loss, "gradient"),
+            window: {
+                let mut window = [[0.0f32; 4]; 3];
+                for (k, tap) in crate::metrics::window::<f32>().into_iter().enumerate() {
+                    window[k / 4][k % 4] = tap;
+                }
+                window
+            },
         }
     }
 }
@@ -220,11 +229,7 @@ impl ViewTargets {
                     }
                     let buffer = match self.passing.take() {
                         Some(t) if t.data.size() == bytes => t.data,
-                        _ => gpu.target_buffer(bytes).ok_or_else(|| {
-                            SplatError::Invalid(format!(
-                                "GPU backend: out of device memory for a {bytes}-byte view target"
-                            ))
-                        })?,
+                        _ => gpu.required_target_buffer(bytes)?,
                     };
                     return Ok(self.passing.insert(gpu.fill_target(buffer, pixels)?));
                 }
@@ -395,13 +400,17 @@ impl GpuRenderer {
     /// `view`'s loss target on the device, for [`GpuRenderer::train_step`]
     /// (the trainer keeps its views' in [`ViewTargets`]).
     pub fn upload_target(&self, view: &View) -> Result<DeviceTarget, SplatError> {
-        let bytes = target_bytes(pixels_of(&view.camera));
-        let buffer = self.target_buffer(bytes).ok_or_else(|| {
+        let buffer = self.required_target_buffer(target_bytes(pixels_of(&view.camera)))?;
+        self.fill_target(buffer, view)
+    }
+
+    /// [`GpuRenderer::target_buffer`], where no memory for it is an error.
+    fn required_target_buffer(&self, bytes: u64) -> Result<wgpu::Buffer, SplatError> {
+        self.target_buffer(bytes).ok_or_else(|| {
             SplatError::Invalid(format!(
                 "GPU backend: out of device memory for a {bytes}-byte view target"
             ))
-        })?;
-        self.fill_target(buffer, view)
+        })
     }
 
     /// The loss's working buffers for `pixels` pixels: the kept ones if they
@@ -750,10 +759,6 @@ impl GpuRenderer {
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let target_data = &target.target.data;
         let weight_sum = target.target.weight_sum;
-        let mut window = [[0.0f32; 4]; 3];
-        for (k, tap) in crate::metrics::window::<f32>().into_iter().enumerate() {
-            window[k / 4][k % 4] = tap;
-        }
         let params = |planes: u32, horizontal: u32| {
             self.uniform(
                 "loss params",
@@ -772,7 +777,7 @@ impl GpuRenderer {
                     lambda_opacity: target.lambda_opacity,
                     weight_sum,
                     _pad: 0.0,
-                    window,
+                    window: kernels.window,
                 },
             )
         };
