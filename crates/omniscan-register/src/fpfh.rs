@@ -8,6 +8,7 @@
 //! Also: nearest-neighbour matching in feature space, with the mutual filter.
 
 use std::num::NonZero;
+use std::sync::Arc;
 
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use nalgebra::{Point3, Vector3};
@@ -57,8 +58,10 @@ fn bin(value: f64, lo: f64, hi: f64) -> usize {
 /// FPFH features over at most `max_nn` neighbours within `radius`. The cloud
 /// needs (consistently oriented) normals.
 pub fn compute_fpfh(cloud: &PointCloud, radius: f64, max_nn: usize) -> Vec<Fpfh> {
-    let neighbourhoods: Vec<Vec<(usize, f64)>> =
-        hybrid_search(&cloud.points, radius, max_nn, |_, n| n.to_vec());
+    // Shared lists: the search hands its results over by copying them into
+    // point order, which for a list is then one reference count.
+    let neighbourhoods: Vec<Arc<[(usize, f64)]>> =
+        hybrid_search(&cloud.points, radius, max_nn, |_, n| Arc::from(n));
     let spfh: Vec<[f64; 33]> = (0..cloud.len())
         .into_par_iter()
         .map(|i| {
