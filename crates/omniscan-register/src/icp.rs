@@ -587,12 +587,13 @@ impl<'a> Matcher<'a> {
                 // First pass: fresh searches seed the hints. (Batched by
                 // grid cell, sharing each cell's candidates, they took 2 ms
                 // more of a 65 ms colored ICP on `frag_115`.) They read only
-                // the cells within the correspondence distance, half a cell,
-                // so at most 8 of the block's 27: a point with nothing that
-                // near is searched again once it moves, but the first pass
-                // costs far less (on `frag_115`, median of eight alternated
-                // rounds: colored ICP 63.5 → 61.2 ms, point-to-plane 69.3 →
-                // 66.3 ms; with a 40% overlap no slower).
+                // the cells within the correspondence distance (at most half
+                // a cell), so at most 8 of the block's 27: a point with
+                // nothing that near is searched again once it moves, but the
+                // first pass costs far less (on `frag_115`, median of eight
+                // alternated rounds: colored ICP 63.5 → 61.2 ms,
+                // point-to-plane 69.3 → 66.3 ms; with a 40% overlap no
+                // slower).
                 let radius = self.max_distance;
                 self.hints = self
                     .source
