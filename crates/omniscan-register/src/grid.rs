@@ -453,7 +453,8 @@ impl Grid {
             // more than the last one's hold this query's k nearest if there
             // are k of them, and are far fewer to select from than all
             // those within reach (on `frag_115`, the graph's pass took 16 ms
-            // before). Only the speed depends on the guess, not the answer.
+            // before). The guess changes the speed and the order the
+            // neighbours come out in, not which they are.
             let guess = LAST_KTH.get() * 1.25;
             if guess < reach {
                 cand.within(guess * guess, found);
