@@ -53,9 +53,15 @@ impl Hasher for CellHasher {
 
 type CellMap = HashMap<u64, (u32, u32), BuildHasherDefault<CellHasher>>;
 
-thread_local! {
-    /// The k-th nearest distance of this thread's last [`Grid::knn_map`] query.
-    static LAST_KTH: std::cell::Cell<f64> = const { std::cell::Cell::new(0.0) };
+/// What [`Grid::each_point`]'s queries carry from one to the next within
+/// a job.
+#[derive(Default)]
+struct Scratch {
+    /// The query's neighbours, (index, squared distance).
+    found: Vec<(usize, f64)>,
+    /// The k-th nearest distance of the cell's previous query, 0 for none
+    /// ([`Grid::knn_map`]'s guess).
+    last_kth: f64,
 }
 
 /// A query's nearest points as far as a grid is sure of them, in no
@@ -366,7 +372,7 @@ impl Grid {
     /// neighbour lists are `Arc`s).
     fn each_point<T: Send + Sync + Clone>(
         &self,
-        per_point: impl Fn(usize, &[f64; 3], &Candidates, f64, &mut Vec<(usize, f64)>) -> T + Sync,
+        per_point: impl Fn(usize, &[f64; 3], &Candidates, f64, &mut Scratch) -> T + Sync,
     ) -> Vec<T> {
         // The points are in cell order: a run of one cell's points shares
         // its candidates. Results are collected in that order and then
@@ -376,7 +382,7 @@ impl Grid {
         // pages each time (colored ICP's gradients and graph on
         // `frag_115`, 128 bytes a point: 21.9 → 19.7 ms).
         let cells: Vec<[i64; 3]> = self.sorted.iter().map(|p| self.coords_of(p)).collect();
-        let query = |cand: &mut Candidates, scratch: &mut Vec<(usize, f64)>, k: usize| {
+        let query = |cand: &mut Candidates, scratch: &mut Scratch, k: usize| {
             let p = &self.sorted[k];
             cand.measure(p);
             let reach = self.block_reach(cells[k], p);
@@ -385,7 +391,7 @@ impl Grid {
         let by_cell: Vec<T> = (0..self.sorted.len())
             .into_par_iter()
             .map_init(
-                || (Candidates::default(), Vec::new(), None),
+                || (Candidates::default(), Scratch::default(), None),
                 |(cand, scratch, cell), k| {
                     if *cell != Some(cells[k]) {
                         self.candidates(cells[k], cand);
@@ -397,7 +403,7 @@ impl Grid {
                         // begins inside a cell repeats the query before it,
                         // so the results do not depend on where the work
                         // was split.
-                        LAST_KTH.set(0.0);
+                        scratch.last_kth = 0.0;
                         if k > 0 && cells[k - 1] == cells[k] {
                             drop(query(cand, scratch, k - 1));
                         }
@@ -428,7 +434,8 @@ impl Grid {
         f: impl Fn(usize, &[(usize, f64)]) -> T + Sync,
     ) -> Vec<T> {
         let r2 = radius.min(self.cell).powi(2);
-        self.each_point(|i, _, cand, _, found| {
+        self.each_point(|i, _, cand, _, scratch| {
+            let found = &mut scratch.found;
             cand.within(r2, found);
             keep_nearest(found, max_nn);
             if let Some(own) = found.iter().position(|x| x.0 == i) {
@@ -447,15 +454,16 @@ impl Grid {
         k: usize,
         f: impl Fn(usize, Nearest<'_>) -> T + Sync,
     ) -> Vec<T> {
-        self.each_point(|i, _, cand, reach, found| {
-            // Neighbouring queries (one cell's, in turn on one thread) have
+        self.each_point(|i, _, cand, reach, scratch| {
+            let found = &mut scratch.found;
+            // Neighbouring queries (one cell's, in turn in one job) have
             // about the same k-th distance: the candidates within a little
             // more than the last one's hold this query's k nearest if there
             // are k of them, and are far fewer to select from than all
             // those within reach (on `frag_115`, the graph's pass took 16 ms
             // before). The guess changes the speed and the order the
             // neighbours come out in, not which they are.
-            let guess = LAST_KTH.get() * 1.25;
+            let guess = scratch.last_kth * 1.25;
             if guess < reach {
                 cand.within(guess * guess, found);
             }
@@ -470,11 +478,10 @@ impl Grid {
             // Set even without k found (to no guess): a query that
             // `each_point` repeats must leave the guess it left the first
             // time.
-            let kth = match found.len() == k && k > 0 {
+            scratch.last_kth = match found.len() == k && k > 0 {
                 true => found.iter().fold(0.0f64, |m, x| m.max(x.1)).sqrt(),
                 false => 0.0,
             };
-            LAST_KTH.set(kth);
             f(
                 i,
                 Nearest {
