@@ -172,6 +172,87 @@ impl Candidates {
     }
 }
 
+/// An order of `points` in which neighbours in space are mostly neighbours
+/// in the order: the Z-order (Morton) curve through cells 1/255 of the
+/// bounding box's longest side, points of one cell in index order.
+///
+/// ICP runs over its source in this order, and a target keeps its points
+/// in it, so that consecutive queries read the neighbour lists and
+/// coordinates of nearby target points one after another. A cloud's stored
+/// order can jump across it: marching cubes' vertex order, or splat centres
+/// after densification. A radix sort: `sort_unstable` of the keys took
+/// twice as long (1.7 ms for 32k points) as this whole function.
+pub fn coherent_order(points: &[Point3<f64>]) -> Vec<u32> {
+    const BITS: u32 = 8;
+    let (lo, hi) = bounds(points);
+    let span = (0..3).map(|a| hi[a] - lo[a]).fold(0.0, f64::max);
+    let scale = if span > 0.0 {
+        ((1 << BITS) - 1) as f64 / span
+    } else {
+        0.0
+    };
+    // A cell number with two zero bits between its bits.
+    let spread = |v: f64| {
+        // Truncation is the floor here: the clamp leaves no negative value.
+        let mut x = if v.is_finite() {
+            v.clamp(0.0, ((1 << BITS) - 1) as f64) as u64
+        } else {
+            0
+        };
+        x = (x | x << 16) & 0x0300_00ff;
+        x = (x | x << 8) & 0x0300_f00f;
+        x = (x | x << 4) & 0x030c_30c3;
+        (x | x << 2) & 0x0924_9249
+    };
+    // The Morton key above the index, sorted by radix, eight bits a pass.
+    let mut keyed: Vec<u64> = points
+        .par_iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let [x, y, z] = [0, 1, 2].map(|a| spread((p[a] - lo[a]) * scale));
+            (x | y << 1 | z << 2) << 32 | i as u64
+        })
+        .collect();
+    let mut spare = vec![0u64; keyed.len()];
+    for shift in (32..32 + 3 * BITS).step_by(8) {
+        let mut starts = [0usize; 257];
+        for &k in &keyed {
+            starts[(k >> shift & 0xff) as usize + 1] += 1;
+        }
+        for b in 1..257 {
+            starts[b] += starts[b - 1];
+        }
+        for &k in &keyed {
+            let slot = &mut starts[(k >> shift & 0xff) as usize];
+            spare[*slot] = k;
+            *slot += 1;
+        }
+        std::mem::swap(&mut keyed, &mut spare);
+    }
+    keyed.into_iter().map(|k| k as u32).collect()
+}
+
+/// `v.floor() as i64` (saturating) for a finite `v`, without the call to
+/// libm's `floor` that baseline x86-64 (no SSE4.1 rounding) compiles
+/// `f64::floor` to: 1% of point-to-plane ICP, three calls per grid query.
+fn floor_to_int(v: f64) -> i64 {
+    let toward_zero = v as i64;
+    toward_zero.saturating_sub(((toward_zero as f64) > v) as i64)
+}
+
+/// The bounding box of the finite points (inverted when there are none).
+fn bounds(points: &[Point3<f64>]) -> ([f64; 3], [f64; 3]) {
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for p in points.iter().filter(|p| p.iter().all(|c| c.is_finite())) {
+        for a in 0..3 {
+            lo[a] = lo[a].min(p[a]);
+            hi[a] = hi[a].max(p[a]);
+        }
+    }
+    (lo, hi)
+}
+
 fn distance2(a: &[f64; 3], b: &[f64; 3]) -> f64 {
     let (dx, dy, dz) = (a[0] - b[0], a[1] - b[1], a[2] - b[2]);
     dx * dx + dy * dy + dz * dz
@@ -181,14 +262,7 @@ impl Grid {
     /// Buckets `points` into cells of side at least `cell` (wider when the
     /// cloud spans more than 2²¹ cells along an axis).
     pub fn new(points: &[Point3<f64>], cell: f64) -> Grid {
-        let mut lo = [f64::INFINITY; 3];
-        let mut hi = [f64::NEG_INFINITY; 3];
-        for p in points.iter().filter(|p| p.iter().all(|c| c.is_finite())) {
-            for a in 0..3 {
-                lo[a] = lo[a].min(p[a]);
-                hi[a] = hi[a].max(p[a]);
-            }
-        }
+        let (mut lo, mut hi) = bounds(points);
         if lo[0] > hi[0] {
             lo = [0.0; 3];
             hi = [0.0; 3];
@@ -208,34 +282,43 @@ impl Grid {
             sorted: Vec::new(),
             ids: Vec::new(),
         };
-        let mut keyed: Vec<(u64, u32)> = points
-            .iter()
-            .enumerate()
-            .map(|(i, p)| (grid.key_of(&[p.x, p.y, p.z]), i as u32))
-            .collect();
-        keyed.par_sort_unstable();
-        grid.sorted = keyed
-            .iter()
-            .map(|&(_, i)| {
-                let p = points[i as usize];
-                [p.x, p.y, p.z]
-            })
-            .collect();
-        grid.ids = keyed.iter().map(|&(_, i)| i).collect();
         let dims: [i64; 3] = std::array::from_fn(|a| ((hi[a] - lo[a]) / cell).floor() as i64 + 1);
         let count = dims.iter().product::<i64>();
-        if count <= 16 * points.len() as i64 + 65_536 {
-            // Dense keys are in the same (z, y, x) order as packed ones.
+        let order: Vec<u32> = if count <= 16 * points.len() as i64 + 65_536 {
+            // A counting sort by dense cell number, in the same (z, y, x)
+            // order as packed keys and, within a cell, in index order: the
+            // order the sort below gives, in a third of the time.
+            let cells: Vec<u32> = points
+                .par_iter()
+                .map(|p| {
+                    let [x, y, z] = Self::unpack(grid.key_of(&[p.x, p.y, p.z]));
+                    ((z * dims[1] + y) * dims[0] + x) as u32
+                })
+                .collect();
             let mut starts = vec![0u32; count as usize + 1];
-            for &(key, _) in &keyed {
-                let [x, y, z] = Self::unpack(key);
-                starts[((z * dims[1] + y) * dims[0] + x) as usize + 1] += 1;
+            for &c in &cells {
+                starts[c as usize + 1] += 1;
             }
             for c in 1..starts.len() {
                 starts[c] += starts[c - 1];
             }
+            let mut order = vec![0u32; points.len()];
+            for (i, &c) in cells.iter().enumerate() {
+                order[starts[c as usize] as usize] = i as u32;
+                starts[c as usize] += 1;
+            }
+            // Each cell's start moved to its end, the next cell's start.
+            starts.rotate_right(1);
+            starts[0] = 0;
             grid.dense = Some(DenseCells { dims, starts });
+            order
         } else {
+            let mut keyed: Vec<(u64, u32)> = points
+                .iter()
+                .enumerate()
+                .map(|(i, p)| (grid.key_of(&[p.x, p.y, p.z]), i as u32))
+                .collect();
+            keyed.par_sort_unstable();
             let mut start = 0;
             for k in 1..=keyed.len() {
                 if k == keyed.len() || keyed[k].0 != keyed[start].0 {
@@ -243,7 +326,16 @@ impl Grid {
                     start = k;
                 }
             }
-        }
+            keyed.into_iter().map(|(_, i)| i).collect()
+        };
+        grid.sorted = order
+            .iter()
+            .map(|&i| {
+                let p = points[i as usize];
+                [p.x, p.y, p.z]
+            })
+            .collect();
+        grid.ids = order;
         grid
     }
 
@@ -285,9 +377,9 @@ impl Grid {
     fn coords_of(&self, p: &[f64; 3]) -> [i64; 3] {
         // Non-finite points land in cell 0; validation rejects them upstream.
         std::array::from_fn(|a| {
-            let c = ((p[a] - self.origin[a]) / self.cell).floor();
+            let c = (p[a] - self.origin[a]) / self.cell;
             if c.is_finite() {
-                (c as i64).clamp(-1, AXIS_CELLS - 2)
+                floor_to_int(c).clamp(-1, AXIS_CELLS - 2)
             } else {
                 0
             }
@@ -628,6 +720,65 @@ mod tests {
                 }
             })
             .collect()
+    }
+
+    #[test]
+    fn coherent_order_is_a_permutation_that_keeps_neighbours_together() {
+        // Random order (as splat centres after densification), a duplicated
+        // point, and a point off the cloud's scale.
+        let mut points = cloud(5000, 4);
+        points.push(points[17]);
+        points.push(Point3::new(40.0, -3.0, 2.0));
+        let order = coherent_order(&points);
+        let mut sorted = order.clone();
+        sorted.sort_unstable();
+        assert!(sorted.iter().enumerate().all(|(i, &o)| o as usize == i));
+        // Deterministic, and ties in index order.
+        assert_eq!(order, coherent_order(&points));
+        let at = |i: u32| order.iter().position(|&o| o == i).unwrap();
+        assert!(at(17) < at(5000));
+        // Consecutive points lie far closer together than in the input.
+        let points = &points[..5000];
+        let order = coherent_order(points);
+        let step = |ids: &mut dyn Iterator<Item = usize>| {
+            let ids: Vec<usize> = ids.collect();
+            let total: f64 = ids
+                .windows(2)
+                .map(|w| (points[w[0]] - points[w[1]]).norm())
+                .sum();
+            total / (ids.len() - 1) as f64
+        };
+        let given = step(&mut (0..5000));
+        let coherent = step(&mut order.iter().map(|&o| o as usize));
+        assert!(coherent < given / 10.0, "{coherent} against {given}");
+        // Nothing to order, and a cloud of one point.
+        assert!(coherent_order(&[]).is_empty());
+        assert_eq!(coherent_order(&[Point3::new(1.0, 2.0, 3.0)]), vec![0]);
+    }
+
+    #[test]
+    fn floor_to_int_is_the_floor() {
+        let values = [
+            0.0,
+            -0.0,
+            0.5,
+            -0.5,
+            1.0,
+            -1.0,
+            2.999_999,
+            -2.000_001,
+            1e15 + 0.5,
+            -1e15 - 0.5,
+            4.5e15,
+            -4.5e15,
+            1e300,
+            -1e300,
+            f64::MIN_POSITIVE,
+            -f64::MIN_POSITIVE,
+        ];
+        for v in values {
+            assert_eq!(floor_to_int(v), v.floor() as i64, "{v}");
+        }
     }
 
     fn brute(points: &[Point3<f64>], q: &Point3<f64>) -> Vec<(usize, f64)> {
