@@ -180,8 +180,8 @@ impl Candidates {
 /// in it, so that consecutive queries read the neighbour lists and
 /// coordinates of nearby target points one after another. A cloud's stored
 /// order can jump across it: marching cubes' vertex order, or splat centres
-/// after densification. A radix sort: `sort_unstable` of the keys took
-/// twice as long (1.7 ms for 32k points) as this whole function.
+/// after densification. The keys are sorted by radix: `par_sort_unstable`
+/// took 1.7-2.0 ms on 32k points, this whole function 0.55 ms.
 pub fn coherent_order(points: &[Point3<f64>]) -> Vec<u32> {
     const BITS: u32 = 8;
     let (lo, hi) = bounds(points);
