@@ -287,11 +287,12 @@ impl Grid {
         let order: Vec<u32> = if count <= 16 * points.len() as i64 + 65_536 {
             // A counting sort by dense cell number, in the same (z, y, x)
             // order as packed keys and, within a cell, in index order: the
-            // order the sort below gives, in a third of the time.
+            // order the sort below gives (`Grid::new` on 32k points: 1.4 →
+            // 1.0 ms).
             let cells: Vec<u32> = points
                 .par_iter()
                 .map(|p| {
-                    let [x, y, z] = Self::unpack(grid.key_of(&[p.x, p.y, p.z]));
+                    let [x, y, z] = grid.coords_of(&[p.x, p.y, p.z]).map(|v| v.max(0));
                     ((z * dims[1] + y) * dims[0] + x) as u32
                 })
                 .collect();
@@ -337,11 +338,6 @@ impl Grid {
             .collect();
         grid.ids = order;
         grid
-    }
-
-    fn unpack(key: u64) -> [i64; 3] {
-        let mask = (1u64 << AXIS_BITS) - 1;
-        [0, 1, 2].map(|a| (key >> (a as u32 * AXIS_BITS) & mask) as i64)
     }
 
     /// Whether the grid answers queries that want up to `max_nn` neighbours
