@@ -246,24 +246,17 @@ fn greater(a: f32, b: f32) -> f32 {
 /// twice), by a tree of pairwise minimums and maximums that the compiler
 /// turns into vector instructions.
 fn least_two(d: &[f32; LANES]) -> (f32, f32) {
-    // Each lane holds the least and second least of the values it has met.
-    let lo: [f32; 8] = std::array::from_fn(|i| lesser(d[i], d[i + 8]));
-    let hi: [f32; 8] = std::array::from_fn(|i| greater(d[i], d[i + 8]));
-    let merge = |lo: &[f32], hi: &[f32], i: usize, j: usize| {
-        (
-            lesser(lo[i], lo[j]),
-            lesser(greater(lo[i], lo[j]), lesser(hi[i], hi[j])),
-        )
-    };
-    let (lo4, hi4): ([f32; 4], [f32; 4]) = (
-        std::array::from_fn(|i| merge(&lo, &hi, i, i + 4).0),
-        std::array::from_fn(|i| merge(&lo, &hi, i, i + 4).1),
-    );
-    let (lo2, hi2): ([f32; 2], [f32; 2]) = (
-        std::array::from_fn(|i| merge(&lo4, &hi4, i, i + 2).0),
-        std::array::from_fn(|i| merge(&lo4, &hi4, i, i + 2).1),
-    );
-    merge(&lo2, &hi2, 0, 1)
+    // Lane i holds the least and second least of the values folded into it.
+    let mut lo: [f32; 8] = std::array::from_fn(|i| lesser(d[i], d[i + 8]));
+    let mut hi: [f32; 8] = std::array::from_fn(|i| greater(d[i], d[i + 8]));
+    for width in [4, 2, 1] {
+        for i in 0..width {
+            let (a, b) = (lo[i], lo[i + width]);
+            hi[i] = lesser(greater(a, b), lesser(hi[i], hi[i + width]));
+            lo[i] = lesser(a, b);
+        }
+    }
+    (lo[0], hi[0])
 }
 
 /// The first entry of `d` equal to `x` (0 if none is: a NaN query), from a
