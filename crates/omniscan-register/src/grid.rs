@@ -521,9 +521,10 @@ impl Grid {
 
     /// Runs `per_point(index, position, candidates, reach, scratch)` for
     /// every point of the grid, the points of one cell sharing that cell's
-    /// candidates, and returns the results by the points' original index. `reach`: nothing nearer than it lies outside
-    /// the block. Each result is cloned once: share large ones (FPFH's
-    /// neighbour lists are `Arc`s).
+    /// candidates (gathered once, measured by `per_point`), and returns the
+    /// results by the points' original index. `reach`: nothing nearer than
+    /// it lies outside the block. Each result is cloned once: share large
+    /// ones (FPFH's neighbour lists are `Arc`s).
     fn each_point<B: Block, T: Send + Sync + Clone>(
         &self,
         per_point: impl Fn(usize, &[f64; 3], &mut B, f64, &mut Scratch) -> T + Sync,
@@ -649,12 +650,11 @@ impl Grid {
     }
 
     /// For every point `i`, `f(i, list, reach)`: `list` (in no particular
-    /// order, `i` among it but for ties) holds every point nearer than
-    /// `reach` to `i`, at most
-    /// `k` of them: `i`'s `k` nearest by f32 distance (ties to the lower
-    /// index), and `reach` a little less than the farthest of them; or,
-    /// where fewer than `k` lie within the block's reach, all of those, and
-    /// that reach.
+    /// order; `i` among it unless `k` others lie at distance 0) holds every
+    /// point nearer than `reach` to `i`, at most `k` of them: `i`'s `k`
+    /// nearest by f32 distance (ties to the lower index), and `reach` a
+    /// little less than the farthest of them; or, where fewer than `k` lie
+    /// within the block's reach, all of those, and that reach.
     ///
     /// This is ICP's neighbour graph ([`crate::icp`]), which needs lists
     /// that hold every point within their reach, not exact nearest sets.

@@ -197,8 +197,9 @@ pub struct Target<'a> {
 /// others in no order), one cache line per point: their indices and a
 /// distance within which the list holds every point, at most the farthest
 /// entry's (never more: a walk's answers are exact whatever lists it walks,
-/// as long as each holds every point nearer than its reach). A walk step reads the neighbours' coordinates from the
-/// target's f32 copy, small enough to stay in cache. (Lists holding their
+/// as long as each holds every point nearer than its reach). A walk step
+/// reads the neighbours' coordinates from the target's f32 copy, small
+/// enough to stay in cache. (Lists holding their
 /// neighbours' coordinates took 264 bytes a point, 8.5 MB on `frag_115`
 /// against a 2 MB L2, and the walk waited on them: point-to-plane ICP there,
 /// which moves every point about one spacing per iteration, median 0.105 s
