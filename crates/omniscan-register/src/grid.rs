@@ -155,16 +155,8 @@ trait Block: Default + Send {
 
 impl Block for Candidates {
     fn gather(&mut self, grid: &Grid, centre: [i64; 3]) {
-        self.x.clear();
-        self.y.clear();
-        self.z.clear();
-        self.ids.clear();
-        grid.block(centre, |s, e| {
-            self.x.extend(grid.sorted[s..e].iter().map(|p| p[0]));
-            self.y.extend(grid.sorted[s..e].iter().map(|p| p[1]));
-            self.z.extend(grid.sorted[s..e].iter().map(|p| p[2]));
-            self.ids.extend_from_slice(&grid.ids[s..e]);
-        });
+        let columns = [&mut self.x, &mut self.y, &mut self.z];
+        grid.gather_columns(centre, columns, &mut self.ids, |_, v| v);
     }
 }
 
@@ -182,20 +174,9 @@ struct CandidatesF32 {
 
 impl Block for CandidatesF32 {
     fn gather(&mut self, grid: &Grid, centre: [i64; 3]) {
-        self.x.clear();
-        self.y.clear();
-        self.z.clear();
-        self.ids.clear();
         let o = grid.origin;
-        grid.block(centre, |s, e| {
-            self.x
-                .extend(grid.sorted[s..e].iter().map(|p| (p[0] - o[0]) as f32));
-            self.y
-                .extend(grid.sorted[s..e].iter().map(|p| (p[1] - o[1]) as f32));
-            self.z
-                .extend(grid.sorted[s..e].iter().map(|p| (p[2] - o[2]) as f32));
-            self.ids.extend_from_slice(&grid.ids[s..e]);
-        });
+        let columns = [&mut self.x, &mut self.y, &mut self.z];
+        grid.gather_columns(centre, columns, &mut self.ids, |a, v| (v - o[a]) as f32);
     }
 }
 
@@ -505,6 +486,25 @@ impl Grid {
                 .fold((u32::MAX, 0), |(s, e), &(cs, ce)| (s.min(cs), e.max(ce))),
         };
         (s < e).then_some((s as usize, e as usize))
+    }
+
+    /// The points of `centre`'s block, one column per axis (each
+    /// coordinate as `to(axis, value)`), and their indices.
+    fn gather_columns<V>(
+        &self,
+        centre: [i64; 3],
+        mut columns: [&mut Vec<V>; 3],
+        ids: &mut Vec<u32>,
+        to: impl Fn(usize, f64) -> V,
+    ) {
+        columns.iter_mut().for_each(|c| c.clear());
+        ids.clear();
+        self.block(centre, |s, e| {
+            for (a, column) in columns.iter_mut().enumerate() {
+                column.extend(self.sorted[s..e].iter().map(|p| to(a, p[a])));
+            }
+            ids.extend_from_slice(&self.ids[s..e]);
+        });
     }
 
     /// How far `p` (in the cell `c`) is from the outside of `c`'s block:

@@ -398,7 +398,8 @@ impl<'a> Target<'a> {
 
     /// One word of each cache line a search from target point `j` reads
     /// first, and the pair it usually ends in: `j`'s neighbour list, its
-    /// point and its normal (0 for [`NO_TARGET`] or a graph not built yet).
+    /// point and its normal (0 for [`NO_TARGET`]; without the list while
+    /// the graph is not built yet).
     ///
     /// A pass calls this for the point a few places ahead and discards the
     /// value: the loads start those cache misses early. The processor
