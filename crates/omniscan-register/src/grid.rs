@@ -181,18 +181,20 @@ impl Block for CandidatesF32 {
 }
 
 impl CandidatesF32 {
-    /// The candidates whose f32 squared distance to `q` is at most `r2`,
-    /// as keys: the distance's bits (which order like the distances, none
-    /// being negative) above the index. Branch-free, as
-    /// [`Candidates::within`].
-    fn keys_within(&mut self, q: [f32; 3], r2: f32, keys: &mut Vec<u64>) {
-        // Measured first, four to a vector instruction, then compacted.
+    /// Squared distances to `q`, four to a vector instruction.
+    fn measure(&mut self, q: [f32; 3]) {
         self.d2.clear();
         self.d2
             .extend(self.x.iter().zip(&self.y).zip(&self.z).map(|((x, y), z)| {
                 let (dx, dy, dz) = (x - q[0], y - q[1], z - q[2]);
                 dx * dx + dy * dy + dz * dz
             }));
+    }
+
+    /// The measured candidates within squared distance `r2`, as keys: the
+    /// distance's bits (which order like the distances, none being
+    /// negative) above the index. Branch-free, as [`Candidates::within`].
+    fn keys_within(&self, r2: f32, keys: &mut Vec<u64>) {
         keys.resize(self.ids.len(), 0);
         let mut kept = 0;
         for (slot, (&d, &id)) in self.d2.iter().zip(&self.ids).enumerate() {
@@ -682,18 +684,19 @@ impl Grid {
         let error = |d: f64| (scale + d) * 2f64.powi(-20);
         self.each_point(|i, p, cand: &mut CandidatesF32, reach, scratch| {
             let q: [f32; 3] = std::array::from_fn(|a| (p[a] - self.origin[a]) as f32);
+            cand.measure(q);
             let keys = &mut scratch.keys;
             // As in `knn_map`: the previous query's k-th distance, a little
             // more, usually holds k candidates and far fewer than the reach.
             // Any guess gives the same lists.
             let guess = scratch.last_kth * 1.25;
             if guess < reach {
-                cand.keys_within(q, (guess * guess) as f32, keys);
+                cand.keys_within((guess * guess) as f32, keys);
             }
             if guess >= reach || keys.len() < k {
                 // Every point within reach, and a few just beyond.
                 let beyond = reach + error(reach);
-                cand.keys_within(q, (beyond * beyond) as f32, keys);
+                cand.keys_within((beyond * beyond) as f32, keys);
             }
             let covers = if keys.len() >= k && k > 0 {
                 if keys.len() > k {
