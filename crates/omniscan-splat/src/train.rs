@@ -1112,13 +1112,44 @@ fn densify(
     *s = out;
 }
 
+/// A model's figures over a set of views: means over the views where a
+/// figure exists (a view whose object the model never covers has no
+/// masked figures), and each view's own.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Evaluation {
+    pub views: usize,
+    /// dB.
+    pub psnr: Option<f64>,
+    pub ssim: Option<f64>,
+    /// Over the object's pixels the model covers, the gripper's left out, dB.
+    pub psnr_masked: Option<f64>,
+    pub ssim_masked: Option<f64>,
+    pub lpips: Option<f64>,
+    pub lpips_masked: Option<f64>,
+    pub per_view: Vec<ViewFigures>,
+    /// Why there is no LPIPS, when there is none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lpips_note: Option<String>,
+}
+
+/// One view's figures.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ViewFigures {
+    /// The view's index in the set it was scored in.
+    pub view: usize,
+    pub psnr: Option<f64>,
+    pub ssim: Option<f64>,
+    pub psnr_masked: Option<f64>,
+    pub ssim_masked: Option<f64>,
+}
+
 /// PSNR and SSIM over whole images (on black) and masked by object ∩
 /// accumulation minus gripper (the paper's evaluation), averaged over views.
 pub fn evaluate(
     model: &Splats,
     views: &[impl TrainingView],
     lpips: Option<&crate::lpips::Lpips>,
-) -> Result<serde_json::Value, SplatError> {
+) -> Result<Evaluation, SplatError> {
     evaluate_views(
         model,
         &Renderer::Cpu,
@@ -1143,7 +1174,7 @@ pub fn evaluate_views<'a>(
     view: impl Fn(usize) -> Result<std::borrow::Cow<'a, View>, SplatError> + Sync,
     lpips: Option<&crate::lpips::Lpips>,
     rendered: impl Fn(usize, &View, &[[f32; 3]]) -> Result<(), SplatError> + Sync,
-) -> Result<serde_json::Value, SplatError> {
+) -> Result<Evaluation, SplatError> {
     use crate::metrics::ssim_whole_and_masked;
     let g = model.gaussians::<f32>();
     let settings = model.render_settings([0.0; 3]);
@@ -1200,36 +1231,34 @@ pub fn evaluate_views<'a>(
             .collect::<Result<_, _>>()?
     };
     // Each view's own figures, so a user can see which views pull the mean down.
-    let per_view: Vec<serde_json::Value> = figures
+    let per_view = figures
         .iter()
-        .map(|f| {
-            serde_json::json!({
-                "psnr": f[0],
-                "ssim": f[1],
-                "psnr_masked": f[2],
-                "ssim_masked": f[3],
-            })
+        .enumerate()
+        .map(|(view, f)| ViewFigures {
+            view,
+            psnr: f[0],
+            ssim: f[1],
+            psnr_masked: f[2],
+            ssim_masked: f[3],
         })
         .collect();
     let mean = |k: usize| {
         let known: Vec<f64> = figures.iter().filter_map(|f| f[k]).collect();
         (!known.is_empty()).then(|| known.iter().sum::<f64>() / known.len() as f64)
     };
-    let mut report = serde_json::json!({
-        "views": count,
-        "psnr": mean(0),
-        "ssim": mean(1),
-        "psnr_masked": mean(2),
-        "ssim_masked": mean(3),
-        "lpips": mean(4),
-        "lpips_masked": mean(5),
-        "per_view": per_view,
-    });
-    if lpips.is_none() {
-        report["lpips_note"] =
-            "LPIPS not computed: no network was given (--lpips FILE.onnx)".into();
-    }
-    Ok(report)
+    Ok(Evaluation {
+        views: count,
+        psnr: mean(0),
+        ssim: mean(1),
+        psnr_masked: mean(2),
+        ssim_masked: mean(3),
+        lpips: mean(4),
+        lpips_masked: mean(5),
+        per_view,
+        lpips_note: lpips
+            .is_none()
+            .then(|| "LPIPS not computed: no network was given (--lpips FILE.onnx)".into()),
+    })
 }
 
 #[cfg(test)]
@@ -1554,8 +1583,8 @@ mod tests {
             (report, seen)
         };
         let (one, renders) = run(1);
-        assert_eq!(one["views"], 4);
-        assert!(one["psnr"].as_f64().unwrap().is_finite());
+        assert_eq!(one.views, 4);
+        assert!(one.psnr.unwrap().is_finite());
         // Every view rendered once, as the model renders it.
         assert_eq!(renders.len(), 4);
         for (i, rgb) in &renders {

@@ -1315,13 +1315,48 @@ fn twin_builds_the_merged_model_in_stages_and_resumes_an_interrupted_run() {
         assert_eq!(status(&edited, stage), "ran", "{edited}");
     }
     assert_eq!(edited["stages"]["twin"]["report"]["test"], twin["test"]);
-    // A model made again makes everything that reads it again.
+    // A model made again is made to the same bytes (the CPU path is
+    // deterministic), and the stages that read it are keyed by those bytes:
+    // they are reused.
     std::fs::remove_file(dir.join("right.ply")).unwrap();
     let remade = omniscan_json(&args);
-    assert_eq!(status(&remade, "left"), "reused", "{remade}");
-    for stage in ["right", "align", "twin"] {
-        assert_eq!(status(&remade, stage), "ran", "{remade}");
+    assert_eq!(status(&remade, "right"), "ran", "{remade}");
+    for stage in ["left", "align", "twin"] {
+        assert_eq!(status(&remade, stage), "reused", "{remade}");
     }
+    // A changed output is made again, and so is everything that reads it
+    // (the transform's report holds its seconds, so its bytes differ).
+    let transform = dir.join("right_to_left.json");
+    let mut text = std::fs::read_to_string(&transform).unwrap();
+    text.push(' ');
+    std::fs::write(&transform, text).unwrap();
+    let changed = omniscan_json(&args);
+    for (stage, expected) in [("left", "reused"), ("right", "reused"), ("align", "ran"), ("twin", "ran")] {
+        assert_eq!(status(&changed, stage), expected, "{changed}");
+    }
+    // The output folder and the capture moved elsewhere, with the same
+    // bytes: every stage is reused, and the report names the new places.
+    let moved = tmp.path().join("moved");
+    std::fs::create_dir(&moved).unwrap();
+    std::fs::rename(&capture, moved.join("cap")).unwrap();
+    std::fs::rename(&dir, moved.join("twin")).unwrap();
+    let moved_args: Vec<String> = args
+        .iter()
+        .map(|a| {
+            a.replace(capture.to_str().unwrap(), moved.join("cap").to_str().unwrap())
+                .replace(dir.to_str().unwrap(), moved.join("twin").to_str().unwrap())
+        })
+        .collect();
+    let moved_args: Vec<&str> = moved_args.iter().map(String::as_str).collect();
+    let again = omniscan_json(&moved_args);
+    for stage in ["left", "right", "align", "twin"] {
+        assert_eq!(status(&again, stage), "reused", "{again}");
+    }
+    assert_eq!(
+        again["stages"]["twin"]["report"]["model"],
+        moved.join("twin/twin.ply").to_str().unwrap()
+    );
+    let dir = moved.join("twin");
     // A capture that is not there is named.
     let missing = tmp.path().join("nowhere");
     assert_refused(

@@ -116,7 +116,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     }
     // Beyond these a mistyped figure runs the machine out of memory (10⁹
     // Gaussians, 10⁶-pixel sides) rather than measuring anything.
-    let most = crate::render::MAX_SIDE;
+    let most = omniscan_pipeline::render::MAX_SIDE;
     if args.width > most || args.height > most {
         bail!("--width and --height must be at most {most} pixels");
     }

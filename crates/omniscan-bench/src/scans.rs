@@ -63,14 +63,14 @@ pub struct BenchArgs {
     #[arg(long, default_value_t = 2)]
     pub supersample: u32,
     #[command(flatten)]
-    pub plan: crate::PlanArgs,
+    pub plan: omniscan_pipeline::simulate::PlanSettings,
     /// Images are shrunk by this factor for training.
     #[arg(long, default_value_t = 2)]
     pub downscale: u32,
     #[arg(long, default_value_t = 100)]
     pub views: usize,
     #[command(flatten)]
-    pub colour: crate::inspect::ColourMatchArgs,
+    pub colour: omniscan_pipeline::inspect::ColourMatch,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     #[arg(long)]
@@ -185,7 +185,7 @@ fn twin(
                 empty_pass: false,
                 ..SimConfig::default()
             };
-            match crate::simulate(config, &capture_dir) {
+            match omniscan_pipeline::simulate::simulate_config(config, &capture_dir, &crate::Bar::new()) {
                 Ok(_) => break,
                 Err(e) if attempt + 1 < attempts && !capture_dir.exists() => {
                     eprintln!("    {e:#}; another seed");
@@ -199,8 +199,14 @@ fn twin(
         let ViewSet::Merged { right_to_left } = ViewSet::merged_from_handover(&capture) else {
             unreachable!("merged_from_handover gives a merged set")
         };
-        crate::train::train_merged(&capture, right_to_left, &model, args.steps, args.downscale)
-            .with_context(|| format!("training {}", model.display()))?;
+        omniscan_pipeline::demo::train_merged(
+            &capture,
+            right_to_left,
+            &model,
+            (args.steps, args.downscale),
+            &crate::Bar::new(),
+        )
+        .with_context(|| format!("training {}", model.display()))?;
     }
     Ok((model, capture))
 }

@@ -1,0 +1,93 @@
+//! omniscan's benchmarks, behind `omniscan bench`: figures go here, not in
+//! tests (docs/results.md records them with the command that gave them).
+//! Each benchmark measures its baseline in the same run where it claims a
+//! ratio (Open3D for registration).
+
+mod inspect;
+mod mask;
+mod registration;
+mod scans;
+mod sim;
+mod splat;
+
+use anyhow::Result;
+use indicatif::{ProgressBar, ProgressStyle};
+
+/// The benchmarks.
+#[derive(clap::Subcommand)]
+pub enum BenchCommand {
+    /// Registration speed and accuracy: local ICP on frag_115 halves (against Open3D when given), global registration on random rotations.
+    Registration(registration::BenchArgs),
+    /// Mask accuracy (IoU against ground truth) and time per image on simulated captures.
+    Mask(mask::BenchArgs),
+    /// Inspection accuracy and time on triplets of generated good and defective copies.
+    Inspect(inspect::BenchArgs),
+    /// Inspection of independently scanned copies: simulated scans (a defect planted in one copy's mesh), a twin trained per scan, the three twins inspected.
+    Scans(scans::BenchArgs),
+    /// Rasterizer time per view: CPU forward and forward+backward, GPU forward, on random scenes or models.
+    Splat(splat::BenchArgs),
+    /// Time a full simulated capture: both arms' trajectories plus the empty pass.
+    Sim(sim::BenchArgs),
+}
+
+/// Runs one benchmark; it prints its own figures.
+pub fn run(command: BenchCommand) -> Result<()> {
+    match command {
+        BenchCommand::Registration(args) => registration::bench(args),
+        BenchCommand::Mask(args) => mask::bench(args),
+        BenchCommand::Inspect(args) => inspect::bench(args),
+        BenchCommand::Scans(args) => scans::bench(args),
+        BenchCommand::Splat(args) => splat::bench(args),
+        BenchCommand::Sim(args) => sim::bench(args),
+    }
+}
+
+/// A bar over `total` `items` (frames, views), labelled `what`.
+fn progress_bar(total: usize, what: &str, items: &str) -> ProgressBar {
+    let bar = ProgressBar::new(total as u64);
+    bar.set_style(
+        ProgressStyle::with_template(&format!(
+            "{{msg}} [{{bar:40}}] {{pos}}/{{len}} {items}, {{elapsed_precise}} (eta {{eta}})"
+        ))
+        .expect("a valid template")
+        .progress_chars("=> "),
+    );
+    bar.set_message(what.to_string());
+    bar
+}
+
+/// Progress of library stages as a bar (the benchmarks' runs are long).
+struct Bar(ProgressBar);
+
+impl Bar {
+    fn new() -> Bar {
+        Bar(ProgressBar::hidden())
+    }
+}
+
+impl omniscan_pipeline::Progress for Bar {
+    fn start(&self, label: &str, total: u64, unit: &str) {
+        self.0.set_draw_target(indicatif::ProgressDrawTarget::stderr());
+        self.0.reset();
+        self.0.set_length(total);
+        self.0.set_style(
+            ProgressStyle::with_template(&format!(
+                "{label} [{{bar:40}}] {{pos}}/{{len}} {unit} {{msg}} (eta {{eta}})"
+            ))
+            .expect("a valid template")
+            .progress_chars("=> "),
+        );
+    }
+    fn set(&self, done: u64) {
+        self.0.set_position(done);
+    }
+    fn advance(&self) {
+        self.0.inc(1);
+    }
+    fn message(&self, text: &str) {
+        self.0.set_message(text.to_string());
+    }
+    fn finish(&self) {
+        self.0.finish_and_clear();
+    }
+}

@@ -1,0 +1,144 @@
+//! Scoring a model against a capture's (or a photo set's) views: PSNR and
+//! SSIM, whole and masked (object ∩ accumulation, gripper excluded), and
+//! LPIPS from a user-supplied network, as the paper's "Results" report them.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Result;
+use serde::{Deserialize, Serialize};
+
+use omniscan_splat::backend::{Backend, Renderer};
+use omniscan_splat::train::Evaluation;
+use omniscan_splat::views::{View, split_held_out_from};
+
+use crate::Progress;
+use crate::settings::default_from_flags;
+use crate::views::{ArmSet, Merge, view_source};
+
+/// Everything `eval` can be told besides the model and the views.
+#[derive(clap::Args, Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct EvalSettings {
+    /// Where to render: cpu (the reference, whose figures `train`'s report repeats to the digit), gpu (any Vulkan/Metal/DX12 device, software ones included) or auto (a real GPU when there is one); a GPU's figures agree with the CPU's to about 1e-4 relative.
+    #[arg(long, default_value = "cpu")]
+    pub backend: Backend,
+    #[arg(long, value_enum, default_value = "left")]
+    pub arm: ArmSet,
+    #[command(flatten)]
+    #[serde(flatten)]
+    pub merge: Merge,
+    /// Shrink images by this integer factor before comparing.
+    #[arg(long, default_value_t = 1)]
+    pub downscale: u32,
+    /// Compare only the views that training with this --hold-out-every held out (the n-th, the 2n-th, ...); 0: every view.
+    #[arg(long, default_value_t = 0)]
+    pub held_out_every: usize,
+    /// The first held-out view's index, as training's --hold-out-first (default: n-1).
+    #[arg(long)]
+    pub held_out_first: Option<usize>,
+    /// An LPIPS network exported to ONNX (two [1,3,H,W] inputs in [-1,1], one distance out) for the `lpips` metrics; needs ONNX Runtime (--onnx-runtime or ORT_DYLIB_PATH).
+    #[arg(long)]
+    pub lpips: Option<PathBuf>,
+    /// ONNX Runtime's shared library for --lpips (default: $ORT_DYLIB_PATH, else python3's onnxruntime package).
+    #[arg(long)]
+    pub onnx_runtime: Option<PathBuf>,
+    /// Also write, per view, the photo (object pixels) beside the render as PNG into this directory.
+    #[arg(long)]
+    pub renders: Option<PathBuf>,
+}
+
+default_from_flags!(EvalSettings);
+
+/// [`Evaluation`] of a model file, with the training step where the model
+/// was a checkpoint.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EvalReport {
+    #[serde(flatten)]
+    pub evaluation: Evaluation,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub checkpoint_step: Option<usize>,
+}
+
+/// Scores `model` (a 3DGS PLY, or a training checkpoint
+/// `MODEL.ply.checkpoint.safetensors` to score a run in progress) against
+/// `capture`'s views. Per-view figures carry the view's index in the set.
+pub fn evaluate(
+    model: &Path,
+    capture: &Path,
+    settings: &EvalSettings,
+    progress: &dyn Progress,
+) -> Result<EvalReport> {
+    let is_checkpoint = model.extension().is_some_and(|e| e == "safetensors");
+    let (model, checkpoint_step) = if is_checkpoint {
+        let state = omniscan_splat::checkpoint::load(model)?;
+        (state.splats, Some(state.step))
+    } else {
+        (omniscan_splat::ply::read_splats(model)?, None)
+    };
+    let right_to_left = settings.merge.read(settings.arm)?;
+    let (source, _) = view_source(capture, settings.arm, right_to_left, settings.downscale)?;
+    // Each compared view keeps its index in the capture, for the per-view
+    // figures; only those views are read, each dropped once compared.
+    let (training, held_out) = split_held_out_from(
+        (0..source.len()).collect(),
+        settings.held_out_every,
+        settings.held_out_first,
+    );
+    let indices = match settings.held_out_every {
+        0 => training,
+        _ => held_out,
+    };
+    let lpips =
+        crate::train::load_lpips(settings.lpips.as_deref(), settings.onnx_runtime.as_deref())?;
+    let renderer = Renderer::new(settings.backend)?;
+    if renderer.is_gpu() {
+        progress.note(&format!("rendering on {}", renderer.describe()));
+    }
+    progress.start("evaluating", indices.len() as u64, "views");
+    let mut evaluation = omniscan_splat::train::evaluate_views(
+        &model,
+        &renderer,
+        indices.len(),
+        |i| source.load(indices[i]).map(std::borrow::Cow::Owned),
+        lpips.as_ref(),
+        |i, v, rgb| {
+            progress.advance();
+            match &settings.renders {
+                Some(dir) => Ok(write_pair(dir, i, v, rgb)?),
+                None => Ok(()),
+            }
+        },
+    )?;
+    progress.finish();
+    for (figures, index) in evaluation.per_view.iter_mut().zip(indices) {
+        figures.view = index;
+    }
+    Ok(EvalReport {
+        evaluation,
+        checkpoint_step,
+    })
+}
+
+/// The photo's object pixels beside the render, as `view_NNN.png`.
+fn write_pair(dir: &Path, i: usize, v: &View, rgb: &[[f32; 3]]) -> omniscan_core::Result<()> {
+    let byte = |x: f32| (x.clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
+    let (w, h) = (v.camera.width as usize, v.camera.height as usize);
+    let mut data = Vec::with_capacity(2 * w * h * 3);
+    for y in 0..h {
+        for x in 0..w {
+            let p = y * w + x;
+            data.extend(v.image[p].map(|c| byte(c * v.object[p])));
+        }
+        for x in 0..w {
+            data.extend(rgb[y * w + x].map(byte));
+        }
+    }
+    omniscan_core::image_io::write_rgb(
+        &dir.join(format!("view_{i:03}.png")),
+        &omniscan_core::image_io::RgbImage {
+            width: 2 * w as u32,
+            height: h as u32,
+            data,
+        },
+    )
+}
