@@ -67,7 +67,8 @@ impl Bar {
 
 impl omniscan_pipeline::Progress for Bar {
     fn start(&self, label: &str, total: u64, unit: &str) {
-        self.0.set_draw_target(indicatif::ProgressDrawTarget::stderr());
+        self.0
+            .set_draw_target(indicatif::ProgressDrawTarget::stderr());
         self.0.reset();
         self.0.set_length(total);
         self.0.set_style(

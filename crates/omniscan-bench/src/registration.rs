@@ -16,12 +16,8 @@ use omniscan_core::geometry::{pose_difference, pose_from_rows, pose_to_rows};
 use omniscan_register::PointCloud;
 use omniscan_register::cloud::read_cloud;
 use omniscan_register::fpfh::compute_fpfh;
-use omniscan_register::global::{
-    GlobalSettings, global_registration, median_spacing,
-};
-use omniscan_register::icp::{
-    Criteria, Estimator, Kernel, Target, icp, multiscale_colored_icp,
-};
+use omniscan_register::global::{GlobalSettings, global_registration, median_spacing};
+use omniscan_register::icp::{Criteria, Estimator, Kernel, Target, icp, multiscale_colored_icp};
 use omniscan_register::preprocess::{estimate_normals, voxel_downsample};
 
 #[derive(clap::Args)]
@@ -594,4 +590,3 @@ fn print_bench(report: &Value) {
         println!("  not run (--trials 0)");
     }
 }
-

@@ -185,7 +185,11 @@ fn twin(
                 empty_pass: false,
                 ..SimConfig::default()
             };
-            match omniscan_pipeline::simulate::simulate_config(config, &capture_dir, &crate::Bar::new()) {
+            match omniscan_pipeline::simulate::simulate_config(
+                config,
+                &capture_dir,
+                &crate::Bar::new(),
+            ) {
                 Ok(_) => break,
                 Err(e) if attempt + 1 < attempts && !capture_dir.exists() => {
                     eprintln!("    {e:#}; another seed");

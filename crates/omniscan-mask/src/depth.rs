@@ -74,7 +74,7 @@ impl DepthEstimator for SensorDepth {
         })?;
         let path = capture.resolve(rel);
         let depth = Plane::depth_metres(&image_io::read_depth(&path)?);
-        crate::pipeline::check_size(
+        crate::check_size(
             &path,
             depth.width,
             depth.height,

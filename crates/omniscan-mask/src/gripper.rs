@@ -6,7 +6,7 @@
 //! Generation"), because the learned masks were unreliable. The robot already
 //! knows where its gripper is (T_i and the finger opening are recorded with
 //! every frame), so we project its model instead: the same meshes the robot
-//! uses, placed by `omniscan_sim::gripper::GripperModel::parts`, rasterised by
+//! uses, placed by `omniscan_scene::gripper::GripperModel::parts`, rasterised by
 //! the simulator's renderer with the capture's intrinsics and T_c. The
 //! projection is then refined against the image:
 //! - where the sensor sees something nearer than the model (the held object in
@@ -19,8 +19,8 @@
 use nalgebra::Isometry3;
 use omniscan_core::Intrinsics;
 use omniscan_core::image_io::RgbImage;
-use omniscan_sim::gripper::GripperModel;
-use omniscan_sim::raster::{Instance, Label, Lighting, render};
+use omniscan_scene::gripper::GripperModel;
+use omniscan_scene::raster::{Instance, Label, Lighting, render};
 
 use crate::plane::Plane;
 

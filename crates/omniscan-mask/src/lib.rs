@@ -53,7 +53,7 @@ pub enum MaskError {
     #[error(transparent)]
     Core(#[from] omniscan_core::CoreError),
     #[error(transparent)]
-    Sim(#[from] omniscan_sim::SimError),
+    Scene(#[from] omniscan_scene::SceneError),
     #[error("{path}: {message}")]
     File { path: PathBuf, message: String },
     #[error(transparent)]
@@ -72,3 +72,22 @@ impl MaskError {
 }
 
 pub type Result<T, E = MaskError> = std::result::Result<T, E>;
+
+/// Checks that an image or depth map read from `path` has the camera's size.
+pub(crate) fn check_size(
+    path: &std::path::Path,
+    w: usize,
+    h: usize,
+    expected: (u32, u32),
+) -> Result<()> {
+    if (w as u32, h as u32) != expected {
+        return Err(MaskError::file(
+            path,
+            format!(
+                "is {w}x{h} but the capture's camera is {}x{}",
+                expected.0, expected.1
+            ),
+        ));
+    }
+    Ok(())
+}

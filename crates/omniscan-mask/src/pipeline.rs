@@ -16,7 +16,7 @@ use serde::{Deserialize, Serialize};
 
 use omniscan_core::capture::{Arm, Capture, Frame};
 use omniscan_core::image_io::{self, RgbImage};
-use omniscan_sim::gripper::GripperModel;
+use omniscan_scene::gripper::GripperModel;
 
 use crate::depth::{DepthEstimator, DepthOutput, MonocularDepth, SensorDepth};
 use crate::flow::{FlowEstimator, FlowInputRange, FlowSettings, LucasKanade, OnnxFlow};
@@ -304,20 +304,6 @@ fn neighbour(capture: &Capture, index: usize) -> Option<usize> {
         .copied()
 }
 
-/// Checks that an image or depth map read from `path` has the camera's size.
-pub(crate) fn check_size(path: &Path, w: usize, h: usize, expected: (u32, u32)) -> Result<()> {
-    if (w as u32, h as u32) != expected {
-        return Err(MaskError::file(
-            path,
-            format!(
-                "is {w}x{h} but the capture's camera is {}x{}",
-                expected.0, expected.1
-            ),
-        ));
-    }
-    Ok(())
-}
-
 /// Computes the masks of frame `index` (nothing is written).
 pub fn mask_frame(masker: &Masker, capture: &Capture, index: usize) -> Result<FrameMasks> {
     let start = Instant::now();
@@ -330,7 +316,7 @@ pub fn mask_frame(masker: &Masker, capture: &Capture, index: usize) -> Result<Fr
     let size = (capture.intrinsics().width, capture.intrinsics().height);
     let image_path = capture.resolve(&frame.file_path);
     let image = image_io::read_rgb(&image_path)?;
-    check_size(
+    crate::check_size(
         &image_path,
         image.width as usize,
         image.height as usize,
@@ -340,7 +326,7 @@ pub fn mask_frame(masker: &Masker, capture: &Capture, index: usize) -> Result<Fr
     let read_image = |f: &Frame| -> Result<RgbImage> {
         let path = capture.resolve(&f.file_path);
         let img = image_io::read_rgb(&path)?;
-        check_size(&path, img.width as usize, img.height as usize, size)?;
+        crate::check_size(&path, img.width as usize, img.height as usize, size)?;
         Ok(img)
     };
     let unet_only = matches!(masker.method, GripperMethod::Unet(_));

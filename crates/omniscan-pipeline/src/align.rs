@@ -19,9 +19,7 @@ use omniscan_register::cloud::read_cloud;
 use omniscan_register::global::{
     GlobalSettings, global_registration, median_spacing, refine_from_initial,
 };
-use omniscan_register::icp::{
-    Criteria, Estimator, Kernel, Registration, Target, evaluate, icp,
-};
+use omniscan_register::icp::{Criteria, Estimator, Kernel, Registration, Target, evaluate, icp};
 use omniscan_register::preprocess::{estimate_normals, voxel_downsample};
 
 use crate::settings::default_from_flags;
@@ -251,7 +249,11 @@ fn register(
             };
             let r = global_registration(source, target, &global)?;
             let details = serde_json::json!({"voxel": r.voxel, "correspondences": r.correspondences, "clique_size": r.clique_size, "clique_exact": r.clique_exact, "hypotheses": r.candidates});
-            (format!("global/{}", r.best.method), r.best.registration, details)
+            (
+                format!("global/{}", r.best.method),
+                r.best.registration,
+                details,
+            )
         }
     })
 }

@@ -249,9 +249,12 @@ pub fn inspect(
         area_mm2: v
             .defective
             .map_or(0.0, |d| v.geometric_area_mm2[d] + v.visual_area_mm2[d]),
-        significant_regions: v
-            .defective
-            .map_or(0, |d| v.regions.iter().filter(|r| r.significant && r.model == d).count()),
+        significant_regions: v.defective.map_or(0, |d| {
+            v.regions
+                .iter()
+                .filter(|r| r.significant && r.model == d)
+                .count()
+        }),
         score: v.score,
         alignments: inspection
             .alignments
@@ -369,7 +372,10 @@ mod tests {
     fn defaults_are_the_inspection_crates() {
         let s = InspectionSettings::default();
         let d = InspectSettings::default();
-        assert_eq!((s.threshold_mm, s.colour_threshold), (d.threshold_mm, d.colour_threshold));
+        assert_eq!(
+            (s.threshold_mm, s.colour_threshold),
+            (d.threshold_mm, d.colour_threshold)
+        );
         assert_eq!((s.views, s.width, s.height), (d.views, d.width, d.height));
         assert_eq!(s.colour.radius_mm(), d.photometric_radius_mm);
         assert_eq!(MakeCopySettings::default().size_mm, 6.0);

@@ -127,7 +127,11 @@ pub fn simulate(
 }
 
 /// [`simulate`] from the simulator's own configuration.
-pub fn simulate_config(config: SimConfig, out: &Path, progress: &dyn Progress) -> Result<SimSummary> {
+pub fn simulate_config(
+    config: SimConfig,
+    out: &Path,
+    progress: &dyn Progress,
+) -> Result<SimSummary> {
     let sim = Simulation::new(config).context("cannot set up the simulation")?;
     progress.start("simulating", sim.frames.len() as u64, "frames");
     let summary = sim
@@ -147,7 +151,10 @@ mod tests {
         let c = SimConfig::default();
         let made = s.config();
         assert_eq!(made.object, c.object);
-        assert_eq!((made.width, made.height, made.supersample), (c.width, c.height, c.supersample));
+        assert_eq!(
+            (made.width, made.height, made.supersample),
+            (c.width, c.height, c.supersample)
+        );
         assert_eq!(made.depth_noise_m_at_1m, c.depth_noise_m_at_1m);
         assert_eq!(made.plan.latitude_min_rad, c.plan.latitude_min_rad);
         assert_eq!(made.plan.latitude_max_rad, c.plan.latitude_max_rad);

@@ -12,13 +12,13 @@ use serde::{Deserialize, Serialize};
 use omniscan_core::poses::ViewSet;
 use omniscan_splat::Splats;
 use omniscan_splat::backend::{Backend, Renderer};
+use omniscan_splat::packed::PackedView;
 use omniscan_splat::ply::write_splats;
 use omniscan_splat::raster::Appearance;
 use omniscan_splat::train::{
-    Checkpoints, Densification, Evaluation, Start, TrainConfig, initial_splats,
-    splats_from_points, train_resumable,
+    Checkpoints, Densification, Evaluation, Start, TrainConfig, initial_splats, splats_from_points,
+    train_resumable,
 };
-use omniscan_splat::packed::PackedView;
 use omniscan_splat::views::{ViewSource, split_held_out_from};
 
 use crate::Progress;
@@ -204,8 +204,7 @@ pub fn train(
             path.display()
         );
     }
-    let (source, view_set) =
-        view_source(capture, settings.arm, right_to_left, settings.downscale)?;
+    let (source, view_set) = view_source(capture, settings.arm, right_to_left, settings.downscale)?;
     if !settings.no_memory_check {
         check_view_memory(&source, settings.downscale, available_memory())?;
     }
@@ -502,7 +501,9 @@ fn trained_with(
         seed: config.seed,
         init: match (init, &settings.init_right) {
             (None, None) => "visual hull".into(),
-            (left, right) => serde_json::json!([left, right].into_iter().flatten().collect::<Vec<_>>()),
+            (left, right) => {
+                serde_json::json!([left, right].into_iter().flatten().collect::<Vec<_>>())
+            }
         },
         right_to_left: merged_by.map(|pose| MergedBy {
             transform: omniscan_core::geometry::pose_to_rows(&pose),

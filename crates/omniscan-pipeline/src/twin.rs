@@ -182,8 +182,7 @@ fn stage<R: Serialize + serde::de::DeserializeOwned>(
     let done = Record {
         key: key.into(),
         output: Some(
-            file_digest(output)
-                .with_context(|| format!("reading {} back", output.display()))?,
+            file_digest(output).with_context(|| format!("reading {} back", output.display()))?,
         ),
         report: Some(report),
     };
@@ -205,8 +204,7 @@ fn stage_key(kind: &str, settings: &impl Serialize, inputs: &[&Path]) -> Result<
     digest.add(kind.as_bytes());
     digest.add(&serde_json::to_vec(settings)?);
     for input in inputs {
-        let bytes =
-            std::fs::read(input).with_context(|| format!("reading {}", input.display()))?;
+        let bytes = std::fs::read(input).with_context(|| format!("reading {}", input.display()))?;
         digest.add(&(bytes.len() as u64).to_le_bytes());
         digest.add(&bytes);
     }
@@ -228,8 +226,24 @@ pub fn twin(
     let transform = out.join("right_to_left.json");
     let twin = out.join("twin.ply");
 
-    let left_stage = train_stage(capture_path, &capture_file, &left, ArmSet::Left, None, settings, progress)?;
-    let right_stage = train_stage(capture_path, &capture_file, &right, ArmSet::Right, None, settings, progress)?;
+    let left_stage = train_stage(
+        capture_path,
+        &capture_file,
+        &left,
+        ArmSet::Left,
+        None,
+        settings,
+        progress,
+    )?;
+    let right_stage = train_stage(
+        capture_path,
+        &capture_file,
+        &right,
+        ArmSet::Right,
+        None,
+        settings,
+        progress,
+    )?;
 
     let align_settings = AlignSettings {
         handover: Some(capture_path.to_path_buf()),
@@ -333,14 +347,21 @@ fn train_stage(
     let key = stage_key("train", &key_settings, &inputs)?;
     let checkpoint = checkpoint_path(out);
     let mut stage = stage(out, Some(&checkpoint), &key, progress, |resume| {
-        train(capture, out, &TrainSettings { resume, ..settings.clone() }, progress)
+        train(
+            capture,
+            out,
+            &TrainSettings {
+                resume,
+                ..settings.clone()
+            },
+            progress,
+        )
     })?;
     // A reused report names the files where they are now.
     stage.report.model = out.to_path_buf();
     if let (Some(m), Some(merged_by)) = (merged, stage.report.settings.right_to_left.as_mut()) {
         merged_by.from = m.transform.display().to_string();
-        stage.report.settings.init =
-            serde_json::json!([m.init_left, m.init_right]);
+        stage.report.settings.init = serde_json::json!([m.init_left, m.init_right]);
     }
     Ok(stage)
 }

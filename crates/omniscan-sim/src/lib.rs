@@ -2,15 +2,14 @@
 //! scan (paper, "Scanning Procedure") with ground truth for every later stage.
 
 pub mod builtin;
-pub mod canvas;
 pub mod defect;
 pub mod grasp;
-pub mod gripper;
-pub mod loaders;
-pub mod mesh;
-pub mod raster;
 pub mod scene;
 pub mod simulate;
+
+// Meshes, the gripper model and the rasterizer live in `omniscan-scene`,
+// which masking shares; the simulator's modules name them as its own.
+pub use omniscan_scene::{canvas, gripper, loaders, mesh, raster};
 
 pub use simulate::{SimConfig, SimSummary, Simulation};
 
@@ -25,6 +24,16 @@ pub enum SimError {
     Core(#[from] omniscan_core::CoreError),
     #[error("{0}")]
     Invalid(String),
+}
+
+impl From<omniscan_scene::SceneError> for SimError {
+    fn from(e: omniscan_scene::SceneError) -> Self {
+        match e {
+            omniscan_scene::SceneError::Mesh { path, message } => SimError::Mesh { path, message },
+            omniscan_scene::SceneError::Core(e) => SimError::Core(e),
+            omniscan_scene::SceneError::Invalid(m) => SimError::Invalid(m),
+        }
+    }
 }
 
 impl SimError {

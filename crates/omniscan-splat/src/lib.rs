@@ -13,6 +13,7 @@
 // variable; iterator chains would hide the maths.
 #![allow(clippy::needless_range_loop)]
 
+pub mod adam;
 pub mod backend;
 pub mod backward;
 pub mod checkpoint;
@@ -29,6 +30,7 @@ pub mod raster;
 pub mod sh;
 pub mod train;
 pub mod transform;
+pub mod view;
 pub mod views;
 
 /// Helpers the unit tests share.

@@ -23,7 +23,7 @@ use rayon::prelude::*;
 use omniscan_core::image_io::{DepthMm, Mask, RgbImage};
 
 use crate::raster::Camera;
-use crate::views::{Pixel, View};
+use crate::view::{Pixel, TrainingView, View};
 
 /// The widest block whose sub-pixel counts fit a byte (15² = 225) and whose
 /// colour sums fit 16 bits (225 · 255 < 65,536).
@@ -144,7 +144,7 @@ impl PackedView {
     }
 
     /// [`unpack`](Self::unpack) into `view`'s buffers, which a step reuses
-    /// (see [`crate::views::TrainingView::pixels_in`]).
+    /// (see [`crate::view::TrainingView::pixels_in`]).
     pub fn unpack_into(&self, view: &mut View) {
         let n = self.excluded.len();
         view.camera = self.camera;
@@ -293,6 +293,30 @@ fn shrink_depth(depth: &DepthMm, f: u32) -> Vec<u16> {
                 .unwrap_or(0)
         })
         .collect()
+}
+
+impl TrainingView for PackedView {
+    fn camera(&self) -> &Camera<f32> {
+        &self.camera
+    }
+
+    fn pixels(&self) -> std::borrow::Cow<'_, View> {
+        std::borrow::Cow::Owned(self.unpack())
+    }
+
+    fn pixels_in<'a>(&'a self, scratch: &'a mut Option<View>) -> &'a View {
+        match scratch {
+            Some(view) => {
+                self.unpack_into(view);
+                view
+            }
+            None => scratch.insert(self.unpack()),
+        }
+    }
+
+    fn pixel(&self, i: usize) -> Pixel {
+        PackedView::pixel(self, i)
+    }
 }
 
 #[cfg(test)]

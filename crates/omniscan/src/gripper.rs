@@ -149,4 +149,3 @@ fn train_gripper(args: TrainGripperArgs) -> Result<()> {
     }
     Ok(())
 }
-

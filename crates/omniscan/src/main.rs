@@ -430,7 +430,10 @@ fn run(cli: Cli) -> Result<()> {
                 print_json(&report)?;
             } else {
                 let defect = match &report.defect {
-                    Some(d) => format!("with a {} mm {} ({} splats changed)", d.size_mm, d.kind, d.affected_splats),
+                    Some(d) => format!(
+                        "with a {} mm {} ({} splats changed)",
+                        d.size_mm, d.kind, d.affected_splats
+                    ),
                     None => "without a defect".into(),
                 };
                 println!(

@@ -1331,7 +1331,12 @@ fn twin_builds_the_merged_model_in_stages_and_resumes_an_interrupted_run() {
     text.push(' ');
     std::fs::write(&transform, text).unwrap();
     let changed = omniscan_json(&args);
-    for (stage, expected) in [("left", "reused"), ("right", "reused"), ("align", "ran"), ("twin", "ran")] {
+    for (stage, expected) in [
+        ("left", "reused"),
+        ("right", "reused"),
+        ("align", "ran"),
+        ("twin", "ran"),
+    ] {
         assert_eq!(status(&changed, stage), expected, "{changed}");
     }
     // The output folder and the capture moved elsewhere, with the same
@@ -1343,8 +1348,11 @@ fn twin_builds_the_merged_model_in_stages_and_resumes_an_interrupted_run() {
     let moved_args: Vec<String> = args
         .iter()
         .map(|a| {
-            a.replace(capture.to_str().unwrap(), moved.join("cap").to_str().unwrap())
-                .replace(dir.to_str().unwrap(), moved.join("twin").to_str().unwrap())
+            a.replace(
+                capture.to_str().unwrap(),
+                moved.join("cap").to_str().unwrap(),
+            )
+            .replace(dir.to_str().unwrap(), moved.join("twin").to_str().unwrap())
         })
         .collect();
     let moved_args: Vec<&str> = moved_args.iter().map(String::as_str).collect();

@@ -599,7 +599,7 @@ impl GpuRenderer {
         t: i32,
     ) -> Result<(), SplatError> {
         let kernels = self.optimise()?;
-        let (b1, b2) = crate::train::ADAM_BETAS;
+        let (b1, b2) = crate::adam::ADAM_BETAS;
         let base = OptimiseParams {
             len: state.n,
             kind: 0,
@@ -615,7 +615,7 @@ impl GpuRenderer {
             beta2: b2,
             one_minus_beta1: 1.0 - b1,
             one_minus_beta2: 1.0 - b2,
-            epsilon: crate::train::ADAM_EPSILON,
+            epsilon: crate::adam::ADAM_EPSILON,
             penalty: 0.0,
         };
         let stats_params = self.uniform(

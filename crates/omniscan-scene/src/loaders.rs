@@ -7,11 +7,11 @@ use std::sync::Arc;
 
 use nalgebra::{Point3, Vector3};
 
-use crate::SimError;
+use crate::SceneError;
 use crate::mesh::{Material, Mesh, Texture};
 
 /// Loads a mesh by extension (`.obj`, `.stl`, `.ply`).
-pub fn load_mesh(path: &Path) -> Result<Mesh, SimError> {
+pub fn load_mesh(path: &Path) -> Result<Mesh, SceneError> {
     let ext = path
         .extension()
         .and_then(|e| e.to_str())
@@ -22,7 +22,7 @@ pub fn load_mesh(path: &Path) -> Result<Mesh, SimError> {
         "stl" => load_stl(path)?,
         "ply" => load_ply(path)?,
         _ => {
-            return Err(SimError::mesh(
+            return Err(SceneError::mesh(
                 path,
                 "unsupported mesh format: use .obj (with .mtl and texture), .stl or .ply",
             ));
@@ -31,13 +31,13 @@ pub fn load_mesh(path: &Path) -> Result<Mesh, SimError> {
     check(path, mesh)
 }
 
-fn check(path: &Path, mut mesh: Mesh) -> Result<Mesh, SimError> {
+fn check(path: &Path, mut mesh: Mesh) -> Result<Mesh, SceneError> {
     if mesh.triangles.is_empty() {
-        return Err(SimError::mesh(path, "mesh has no triangles"));
+        return Err(SceneError::mesh(path, "mesh has no triangles"));
     }
     let n = mesh.positions.len() as u32;
     if let Some(t) = mesh.triangles.iter().find(|t| t.iter().any(|&i| i >= n)) {
-        return Err(SimError::mesh(
+        return Err(SceneError::mesh(
             path,
             format!("triangle {t:?} refers to a vertex beyond the {n} vertices"),
         ));
@@ -47,7 +47,7 @@ fn check(path: &Path, mut mesh: Mesh) -> Result<Mesh, SimError> {
         .iter()
         .any(|p| !p.coords.iter().all(|c| c.is_finite()))
     {
-        return Err(SimError::mesh(
+        return Err(SceneError::mesh(
             path,
             "mesh has a vertex with a NaN or infinite coordinate",
         ));
@@ -69,7 +69,7 @@ fn check(path: &Path, mut mesh: Mesh) -> Result<Mesh, SimError> {
     Ok(mesh)
 }
 
-fn load_obj(path: &Path) -> Result<Mesh, SimError> {
+fn load_obj(path: &Path) -> Result<Mesh, SceneError> {
     let options = tobj::LoadOptions {
         single_index: true,
         triangulate: true,
@@ -77,7 +77,7 @@ fn load_obj(path: &Path) -> Result<Mesh, SimError> {
         ignore_lines: true,
     };
     let (models, materials) = tobj::load_obj(path, &options)
-        .map_err(|e| SimError::mesh(path, format!("cannot read OBJ: {e}")))?;
+        .map_err(|e| SceneError::mesh(path, format!("cannot read OBJ: {e}")))?;
     let dir = path.parent().unwrap_or(Path::new("."));
     let mut out = Mesh::default();
     let obj_materials = match materials {
@@ -96,7 +96,7 @@ fn load_obj(path: &Path) -> Result<Mesh, SimError> {
             Some(name) => {
                 let tex_path = dir.join(name.trim());
                 let img = omniscan_core::image_io::read_rgb(&tex_path)
-                    .map_err(|e| SimError::mesh(path, format!("texture: {e}")))?;
+                    .map_err(|e| SceneError::mesh(path, format!("texture: {e}")))?;
                 Some(Arc::new(Texture::from_rgb8(
                     img.width, img.height, &img.data,
                 )))
@@ -156,8 +156,8 @@ fn load_obj(path: &Path) -> Result<Mesh, SimError> {
     Ok(out)
 }
 
-fn load_stl(path: &Path) -> Result<Mesh, SimError> {
-    let bytes = std::fs::read(path).map_err(|e| SimError::mesh(path, e.to_string()))?;
+fn load_stl(path: &Path) -> Result<Mesh, SceneError> {
+    let bytes = std::fs::read(path).map_err(|e| SceneError::mesh(path, e.to_string()))?;
     let looks_ascii =
         bytes.starts_with(b"solid") && bytes.iter().take(1024).any(|&b| b == b'\n') && {
             let head = String::from_utf8_lossy(&bytes[..bytes.len().min(1024)]);
@@ -166,7 +166,7 @@ fn load_stl(path: &Path) -> Result<Mesh, SimError> {
     let mut mesh = Mesh::default();
     if looks_ascii {
         let text = std::str::from_utf8(&bytes)
-            .map_err(|_| SimError::mesh(path, "ASCII STL is not text"))?;
+            .map_err(|_| SceneError::mesh(path, "ASCII STL is not text"))?;
         let mut corner = Vec::with_capacity(3);
         for (line_no, line) in text.lines().enumerate() {
             let mut words = line.split_whitespace();
@@ -175,13 +175,13 @@ fn load_stl(path: &Path) -> Result<Mesh, SimError> {
                     .map(|w| w.parse::<f32>())
                     .collect::<Result<_, _>>()
                     .map_err(|_| {
-                        SimError::mesh(
+                        SceneError::mesh(
                             path,
                             format!("line {}: bad vertex `{}`", line_no + 1, line.trim()),
                         )
                     })?;
                 if v.len() != 3 {
-                    return Err(SimError::mesh(
+                    return Err(SceneError::mesh(
                         path,
                         format!("line {}: a vertex needs 3 numbers", line_no + 1),
                     ));
@@ -195,7 +195,7 @@ fn load_stl(path: &Path) -> Result<Mesh, SimError> {
         }
     } else {
         if bytes.len() < 84 {
-            return Err(SimError::mesh(
+            return Err(SceneError::mesh(
                 path,
                 "binary STL is shorter than its 84-byte header",
             ));
@@ -203,7 +203,7 @@ fn load_stl(path: &Path) -> Result<Mesh, SimError> {
         let n = u32::from_le_bytes([bytes[80], bytes[81], bytes[82], bytes[83]]) as usize;
         let need = 84 + n * 50;
         if bytes.len() < need {
-            return Err(SimError::mesh(
+            return Err(SceneError::mesh(
                 path,
                 format!(
                     "binary STL is truncated: {n} triangles need {need} bytes, file has {}",
@@ -254,14 +254,14 @@ fn weld(mesh: &mut Mesh) {
     mesh.normals.clear();
 }
 
-fn load_ply(path: &Path) -> Result<Mesh, SimError> {
-    let ply = omniscan_core::ply::read(path).map_err(|e| SimError::mesh(path, e.to_string()))?;
+fn load_ply(path: &Path) -> Result<Mesh, SceneError> {
+    let ply = omniscan_core::ply::read(path).map_err(|e| SceneError::mesh(path, e.to_string()))?;
     let vertex = ply
         .element("vertex")
-        .ok_or_else(|| SimError::mesh(path, "PLY has no `vertex` element"))?;
+        .ok_or_else(|| SceneError::mesh(path, "PLY has no `vertex` element"))?;
     let col = |name: &str| vertex.scalar(name);
     let (Some(x), Some(y), Some(z)) = (col("x"), col("y"), col("z")) else {
-        return Err(SimError::mesh(
+        return Err(SceneError::mesh(
             path,
             "PLY vertices need x, y and z properties",
         ));
@@ -286,7 +286,7 @@ fn load_ply(path: &Path) -> Result<Mesh, SimError> {
             .collect();
     }
     let face = ply.element("face").ok_or_else(|| {
-        SimError::mesh(
+        SceneError::mesh(
             path,
             "PLY has no `face` element: a point cloud is not a mesh",
         )
@@ -294,7 +294,7 @@ fn load_ply(path: &Path) -> Result<Mesh, SimError> {
     let lists = face
         .list("vertex_indices")
         .or_else(|| face.list("vertex_index"))
-        .ok_or_else(|| SimError::mesh(path, "PLY faces need a `vertex_indices` list"))?;
+        .ok_or_else(|| SceneError::mesh(path, "PLY faces need a `vertex_indices` list"))?;
     for f in lists {
         for k in 1..f.len().saturating_sub(1) {
             mesh.triangles

@@ -16,7 +16,7 @@ use std::path::Path;
 
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 
-use crate::SimError;
+use crate::SceneError;
 use crate::mesh::{Material, Mesh, MeshBuilder};
 
 /// Distance from the gripper base to the finger mounts (URDF), metres.
@@ -51,11 +51,11 @@ pub struct PlacedPart<'a> {
 
 impl GripperModel {
     /// The YuMi meshes from `dir` (a copy of `shared/data/grippers/yumi`).
-    pub fn from_yumi_dir(dir: &Path) -> Result<GripperModel, SimError> {
-        let load = |name: &str, color: [f32; 3], specular: f32| -> Result<Mesh, SimError> {
+    pub fn from_yumi_dir(dir: &Path) -> Result<GripperModel, SceneError> {
+        let load = |name: &str, color: [f32; 3], specular: f32| -> Result<Mesh, SceneError> {
             let path = dir.join("meshes").join(name);
             if !path.exists() {
-                return Err(SimError::mesh(
+                return Err(SceneError::mesh(
                     &path,
                     "missing: --gripper-dir must hold meshes/finray_finger.stl, gripper_base.stl and link_7.stl",
                 ));
