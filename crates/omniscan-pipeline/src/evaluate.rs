@@ -36,7 +36,7 @@ pub struct EvalSettings {
     /// The first held-out view's index, as training's --hold-out-first (default: n-1).
     #[arg(long)]
     pub held_out_first: Option<usize>,
-    /// An LPIPS network exported to ONNX (two [1,3,H,W] inputs in [-1,1], one distance out) for the `lpips` metrics; needs ONNX Runtime (--onnx-runtime or ORT_DYLIB_PATH).
+    /// An LPIPS network exported to ONNX (two `[1,3,H,W]` inputs in `[-1,1]`, one distance out) for the `lpips` metrics; needs ONNX Runtime (--onnx-runtime or ORT_DYLIB_PATH).
     #[arg(long)]
     pub lpips: Option<PathBuf>,
     /// ONNX Runtime's shared library for --lpips (default: $ORT_DYLIB_PATH, else python3's onnxruntime package).

@@ -65,7 +65,7 @@ pub struct LearnedSettings {
     /// What --depth-model outputs.
     #[arg(long, value_enum, default_value = "disparity")]
     pub depth_model_output: DepthOutputChoice,
-    /// An optical-flow network (ONNX; e.g. RAFT; two [1,3,H,W] image inputs, a [1,2,H,W] output) instead of Lucas-Kanade.
+    /// An optical-flow network (ONNX; e.g. RAFT; two `[1,3,H,W]` image inputs, a `[1,2,H,W]` output) instead of Lucas-Kanade.
     #[arg(long)]
     pub flow_model: Option<PathBuf>,
     /// The value range --flow-model expects its images in.

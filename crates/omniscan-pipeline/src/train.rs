@@ -113,7 +113,7 @@ pub struct TrainSettings {
     /// Continue an interrupted run from OUT.checkpoint.safetensors (same capture and settings); ends with the model an uninterrupted run would have given.
     #[arg(long)]
     pub resume: bool,
-    /// An LPIPS network exported to ONNX (two [1,3,H,W] inputs in [-1,1], one distance out) for the `lpips` metrics; needs ONNX Runtime (--onnx-runtime or ORT_DYLIB_PATH).
+    /// An LPIPS network exported to ONNX (two `[1,3,H,W]` inputs in `[-1,1]`, one distance out) for the `lpips` metrics; needs ONNX Runtime (--onnx-runtime or ORT_DYLIB_PATH).
     #[arg(long)]
     pub lpips: Option<PathBuf>,
     /// ONNX Runtime's shared library for --lpips (default: $ORT_DYLIB_PATH, else python3's onnxruntime package).

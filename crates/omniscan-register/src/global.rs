@@ -61,7 +61,7 @@ pub struct Candidate {
 }
 
 /// Fitnesses closer than this are a near-tie, which other figures decide.
-const NEAR_TIE_FITNESS: f64 = 0.02;
+pub const NEAR_TIE_FITNESS: f64 = 0.02;
 
 impl Candidate {
     /// Higher fitness wins; within [`NEAR_TIE_FITNESS`], lower colour error

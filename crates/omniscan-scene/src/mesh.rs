@@ -317,7 +317,7 @@ impl MeshBuilder {
         (self.mesh.materials.len() - 1) as u16
     }
 
-    /// A grid surface `f(s, t) -> (position, uv)` over [0,1]², `nu` x `nv`
+    /// A grid surface `f(s, t) -> (position, uv)` over `[0,1]²`, `nu` x `nv`
     /// cells, normals computed afterwards by [`Mesh::compute_normals`].
     pub fn grid(
         &mut self,

@@ -54,7 +54,7 @@ impl Renderer {
         }
     }
 
-    /// "cpu", or "gpu: <adapter>".
+    /// "cpu", or "gpu: ADAPTER".
     pub fn describe(&self) -> String {
         match self {
             Renderer::Cpu => "cpu".into(),

@@ -64,7 +64,7 @@ pub fn basis<F: Real>(degree: usize, dir: [F; 3]) -> Vec<F> {
     b
 }
 
-/// Σ_k coeffs[k]·Y_k(dir) per channel (no offset, no clamp); `coeffs` holds
+/// Σ_k coeffs\[k\]·Y_k(dir) per channel (no offset, no clamp); `coeffs` holds
 /// `(degree+1)²` RGB triples, basis index major.
 pub fn evaluate<F: Real>(degree: usize, dir: [F; 3], coeffs: &[[F; 3]]) -> [F; 3] {
     let b = basis(degree, dir);

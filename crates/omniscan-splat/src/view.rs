@@ -30,7 +30,7 @@ pub struct Pixel {
 }
 
 /// What training reads of a view: its camera at any time, its pixels when a
-/// step needs them. A [`View`] lends its own; a [`PackedView`] is unpacked.
+/// step needs them. A [`View`] lends its own; a [`PackedView`](crate::packed::PackedView) is unpacked.
 pub trait TrainingView: Sync {
     fn camera(&self) -> &Camera<f32>;
     /// The view's pixels.

@@ -37,7 +37,7 @@ pub struct TrainGripperArgs {
     /// Where to write the network (safetensors).
     #[arg(long)]
     pub out: PathBuf,
-    /// Also write the network as ONNX here (input `rgb` [1,3,H,W] 0..255, output `probability`), for other tools or --unet.
+    /// Also write the network as ONNX here (input `rgb`, `[1,3,H,W]` in 0..255; output `probability`), for other tools or --unet.
     #[arg(long)]
     pub onnx: Option<PathBuf>,
     #[arg(long, default_value_t = 800)]

@@ -14,7 +14,7 @@
 //! the loss's weight 0.5; 250 steps on two cores beside lavapipe), serial
 //! with the device's work, and about 27 times that at 4K; kept, a view costs
 //! it once. The loss's working planes are kept from step to step as well
-//! ([`LossBuffers`]).
+//! (`LossBuffers`).
 
 use super::{
     GROUP, GpuFrame, GpuRenderer, SceneBuffers, compute_pipeline, gpu_error, grid, shader,
