@@ -26,12 +26,9 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
-use crate::adam::Adam;
 use crate::backend::Renderer;
-use crate::backward::backward_binned;
-use crate::gpu::training::{HostState, LossTarget, McmcStep, StepRates, ViewTargets};
 use crate::metrics::{ImageView, psnr, weighted_ssim_and_gradient};
-use crate::raster::{Camera, bin_tiles, project, rasterize_binned};
+use crate::raster::Camera;
 use crate::sh::{C0, coefficients};
 use crate::views::{TrainingView, View};
 use crate::{SplatError, Splats};
@@ -143,13 +140,6 @@ impl TrainConfig {
             ..self
         }
     }
-}
-
-/// Values per splat of the five parameter groups (means, log-scales,
-/// quaternions, opacity logits, SH with `k` coefficients per channel), in
-/// the order of the trainer's Adam states.
-fn moment_strides(k: usize) -> [usize; 5] {
-    [3, 3, 4, 1, k * 3]
 }
 
 /// The visual-hull initialisation described in the module docs: `count`
@@ -518,7 +508,7 @@ pub struct TrainState {
 /// views, and a digest of their cameras, so that a resumed run cannot go on
 /// with views that moved (a merged capture's right arm under another
 /// right-to-left transform, an edited capture).
-fn fingerprint(config: &TrainConfig, views: &[impl TrainingView]) -> String {
+pub(crate) fn fingerprint(config: &TrainConfig, views: &[impl TrainingView]) -> String {
     let mut digest = omniscan_core::digest::Digest::default();
     let mut add = |x: u32| digest.add(&x.to_le_bytes());
     for view in views {
@@ -533,7 +523,9 @@ fn fingerprint(config: &TrainConfig, views: &[impl TrainingView]) -> String {
     format!("{config:?} views={} cameras={}", views.len(), digest.hex())
 }
 
-/// Training with optional resumption and checkpoints (see [`train`]).
+/// Training with optional resumption and checkpoints (see [`train`]): a
+/// [`Trainer`](crate::trainer::Trainer) stepped to the end, its state saved
+/// every `checkpoints.every` steps (not after the last).
 pub fn train_resumable(
     views: &[impl TrainingView],
     start: Start,
@@ -542,421 +534,18 @@ pub fn train_resumable(
     mut checkpoints: Option<Checkpoints<'_>>,
     progress: &mut dyn FnMut(usize, f32, f64),
 ) -> Result<Splats, SplatError> {
-    if views.is_empty() {
-        return Err(SplatError::Invalid("no training views".into()));
-    }
-    let mut rng = ChaCha8Rng::seed_from_u64(config.seed ^ 0x7a11);
-    let print = fingerprint(config, views);
-    let mcmc = config.densification == Densification::Mcmc;
-    let (mut s, first_step, extent, mut adam, mut grad2d_sum, mut grad2d_count, mut order) =
-        match start {
-            Start::Fresh(mut s) => {
-                s.validate()?;
-                // The cap is a hard one: densification never exceeds it, so
-                // neither may the start (a 5000-splat start under a cap of
-                // 100 used to train on, and end with, 4664).
-                if config.max_splats == 0 || s.len() > config.max_splats {
-                    return Err(SplatError::Invalid(format!(
-                        "the starting model has {} splats and the cap (max_splats) is {}: start from fewer points or raise the cap",
-                        s.len(),
-                        config.max_splats
-                    )));
-                }
-                if mcmc {
-                    crate::mcmc::prepare(&mut s);
-                }
-                // Scene extent: the splats' spread around their centre.
-                let extent = {
-                    let n = s.len().max(1) as f32;
-                    let c = [0, 1, 2].map(|a| s.means.iter().map(|m| m[a]).sum::<f32>() / n);
-                    s.means
-                        .iter()
-                        .map(|m| {
-                            ((m[0] - c[0]).powi(2) + (m[1] - c[1]).powi(2) + (m[2] - c[2]).powi(2))
-                                .sqrt()
-                        })
-                        .fold(0.0, f32::max)
-                        .max(1e-3)
-                };
-                let k = s.sh_coefficients();
-                let adam = [
-                    Adam::new(s.len() * 3),
-                    Adam::new(s.len() * 3),
-                    Adam::new(s.len() * 4),
-                    Adam::new(s.len()),
-                    Adam::new(s.len() * k * 3),
-                ];
-                let n = s.len();
-                (
-                    s,
-                    1,
-                    extent,
-                    adam,
-                    vec![0.0f32; n],
-                    vec![0u32; n],
-                    Vec::new(),
-                )
-            }
-            Start::Resume(state) => {
-                let state = *state;
-                if state.fingerprint != print {
-                    return Err(SplatError::Invalid(format!(
-                        "the checkpoint was written with other settings or views ({}); now: {print}",
-                        state.fingerprint
-                    )));
-                }
-                state.splats.validate()?;
-                if state.order.iter().any(|&i| i >= views.len()) {
-                    return Err(SplatError::Invalid(
-                        "the checkpoint's view order names views that do not exist".into(),
-                    ));
-                }
-                rng.set_word_pos(state.rng_word_pos);
-                let adam = state.moments.map(|(m, v)| Adam { m, v });
-                (
-                    state.splats,
-                    state.step + 1,
-                    state.extent,
-                    adam,
-                    state.grad2d_sum,
-                    state.grad2d_count,
-                    state.order,
-                )
-            }
-        };
-    let k = s.sh_coefficients();
-    // On a GPU the parameters, moments and statistics live on the device.
-    let mut device_state = match renderer {
-        Renderer::Gpu(gpu) => {
-            Some(gpu.upload_state(&host_state(&s, &adam, &grad2d_sum, &grad2d_count))?)
-        }
-        Renderer::Cpu => None,
-    };
-    // On a GPU the views' loss targets stay on the device too, as they fit.
-    let mut view_targets = match renderer {
-        Renderer::Gpu(gpu) => Some(ViewTargets::new(views.len(), gpu.view_memory())),
-        Renderer::Cpu => None,
-    };
-    let mut scratch = None;
-    for step in first_step..=config.steps {
-        if order.is_empty() {
-            order = (0..views.len()).collect();
-            for i in (1..order.len()).rev() {
-                order.swap(i, rng.random_range(0..=i));
-            }
-        }
-        let index = order.pop().unwrap();
-        let degree = (step / config.sh_interval.max(1))
-            .min(config.max_sh_degree)
-            .min(s.sh_degree);
-        let background = [
-            rng.random::<f32>(),
-            rng.random::<f32>(),
-            rng.random::<f32>(),
-        ];
-        let settings = s.render_settings(background);
-        let t = step as i32;
-        let progress_fraction = step as f32 / config.steps as f32;
-        let means_lr = config.position_lr * extent * 0.01f32.powf(progress_fraction);
-        // Both backends step with these rates (the CPU's MCMC terms come
-        // from the same `mcmc` functions).
-        let rates = StepRates {
-            means: means_lr,
-            log_scales: LOG_SCALES_LR,
-            quats: QUATS_LR,
-            opacities: OPACITIES_LR,
-            sh_dc: SH_DC_LR,
-            sh_rest: config.sh_rest_lr,
-            mcmc: mcmc.then(|| {
-                let (opacity_penalty, scale_penalty) =
-                    crate::mcmc::penalty_weights(s.len(), extent);
-                McmcStep {
-                    opacity_penalty,
-                    scale_penalty,
-                    noise_scale: crate::mcmc::noise_scale(means_lr, extent),
-                    seed: crate::mcmc::noise_seed(config.seed),
-                    step: step as u32,
-                }
-            }),
-            absolute_gradients: config.absolute_gradients,
-        };
-        if let (Renderer::Gpu(gpu), Some(device), Some(targets)) =
-            (renderer, device_state.as_ref(), view_targets.as_mut())
-        {
-            let target = targets.target(gpu, index, &views[index], &mut scratch)?;
-            let camera = views[index].camera();
-            let frame = gpu.forward_state(device, camera, &settings, degree, false)?;
-            let target = LossTarget {
-                target,
-                background,
-                lambda_ssim: config.lambda_ssim,
-                lambda_opacity: config.lambda_opacity,
-            };
-            let report = gpu.train_step(device, &frame, &target, &rates, t)?;
-            progress(step, report.loss, report.psnr);
-        } else {
-            let view = views[index].pixels_in(&mut scratch);
-            let g = s.gaussians_up_to::<f32>(degree);
-            let p = project(&g, &view.camera, &settings);
-            let (width, height) = (view.camera.width, view.camera.height);
-            let bins = bin_tiles(&p, width, height);
-            let r = rasterize_binned(&bins, width, height, background);
-            let (w, h) = (view.camera.width as usize, view.camera.height as usize);
-            let StepLoss {
-                loss,
-                d_rgb,
-                d_alpha,
-                psnr: image_psnr,
-            } = step_loss(view, &r, background, config);
-            let grads = backward_binned(
-                &g,
-                &view.camera,
-                &settings,
-                &p,
-                &bins,
-                &d_rgb,
-                &d_alpha,
-                config.absolute_gradients,
-            );
-            // Screen-space gradient statistics for densification (gsplat scales by half the image size).
-            let screen_gradients = if config.absolute_gradients {
-                &grads.means2d_abs
-            } else {
-                &grads.means2d
-            };
-            if !mcmc {
-                grad2d_sum
-                    .par_iter_mut()
-                    .zip(grad2d_count.par_iter_mut())
-                    .enumerate()
-                    .filter(|(i, _)| p.visible(*i))
-                    .for_each(|(i, (sum, count))| {
-                        let gx = screen_gradients[i][0] * w as f32 * 0.5;
-                        let gy = screen_gradients[i][1] * h as f32 * 0.5;
-                        *sum += (gx * gx + gy * gy).sqrt();
-                        *count += 1;
-                    });
-            }
-            // Adam steps, in place on the parameters' flattened storage.
-            adam[0].step(
-                s.means.as_flattened_mut(),
-                grads.means.as_flattened(),
-                rates.means,
-                t,
-            );
-            let mut log_scale_grads = grads.log_scales(&g);
-            let mut opacity_grads = grads.opacity_logits(&g);
-            if mcmc {
-                crate::mcmc::add_regularisation(
-                    &s,
-                    extent,
-                    &mut opacity_grads,
-                    &mut log_scale_grads,
-                );
-            }
-            adam[1].step(
-                s.log_scales.as_flattened_mut(),
-                log_scale_grads.as_flattened(),
-                rates.log_scales,
-                t,
-            );
-            adam[2].step(
-                s.quats.as_flattened_mut(),
-                grads.quats.as_flattened(),
-                rates.quats,
-                t,
-            );
-            adam[3].step(&mut s.opacity_logits, &opacity_grads, rates.opacities, t);
-            // Bands above the current degree get zero gradients (their
-            // moments still decay); DC and higher bands use different rates.
-            let ka = coefficients(degree);
-            let mut sh_rates = vec![rates.sh_rest; 3 * k];
-            sh_rates[..3].fill(rates.sh_dc);
-            adam[4].step_rows(
-                s.sh.as_flattened_mut(),
-                grads.colors.as_flattened(),
-                3 * ka,
-                &sh_rates,
-                t,
-            );
-            if mcmc {
-                crate::mcmc::add_noise(&mut s, config.seed, step, means_lr, extent);
-            }
-            progress(step, loss, image_psnr);
-        }
-
-        // Densify and prune (on the host: a resident state comes back first).
-        let in_window = step >= config.densify_from && step <= config.densify_until;
-        let densify_now = in_window && step % config.densify_every == 0;
-        let reset_now = !mcmc
-            && config.reset_every > 0
-            && step % config.reset_every == 0
-            && step < config.densify_until;
-        let checkpoint_now = checkpoints
-            .as_ref()
-            .is_some_and(|c| c.every > 0 && step % c.every == 0 && step < config.steps);
-        if let (Renderer::Gpu(gpu), Some(device)) = (renderer, device_state.as_ref())
-            && (densify_now || reset_now || checkpoint_now)
-        {
-            let host = gpu.download_state(device)?;
-            s = host.splats;
-            adam = host.moments.map(|(m, v)| Adam { m, v });
-            grad2d_sum = host.grad_sum;
-            grad2d_count = host.grad_count;
-        }
-        if densify_now && mcmc {
-            crate::mcmc::refine(&mut s, config.max_splats, &mut rng, &mut |changed, len| {
-                for (a, stride) in adam.iter_mut().zip(moment_strides(k)) {
-                    a.reset(changed, stride, len);
-                }
-            });
-            grad2d_sum = vec![0.0; s.len()];
-            grad2d_count = vec![0; s.len()];
-        } else if densify_now {
-            densify(
-                &mut s,
-                &mut adam,
-                &grad2d_sum,
-                &grad2d_count,
-                config,
-                extent,
-                &mut rng,
-            );
-            grad2d_sum = vec![0.0; s.len()];
-            grad2d_count = vec![0; s.len()];
-        }
-        if reset_now {
-            let cap = (0.01f32 / 0.99).ln();
-            for o in &mut s.opacity_logits {
-                *o = o.min(cap);
-            }
-        }
+    let mut trainer = crate::trainer::Trainer::new(views, start, config, renderer)?;
+    while let Some(report) = trainer.step()? {
+        progress(report.step, report.loss, report.psnr);
         if let Some(c) = checkpoints.as_mut()
-            && checkpoint_now
+            && c.every > 0
+            && report.step % c.every == 0
+            && report.step < config.steps
         {
-            let state = TrainState {
-                step,
-                splats: s.clone(),
-                extent,
-                moments: adam.each_ref().map(|a| (a.m.clone(), a.v.clone())),
-                grad2d_sum: grad2d_sum.clone(),
-                grad2d_count: grad2d_count.clone(),
-                order: order.clone(),
-                rng_word_pos: rng.get_word_pos(),
-                fingerprint: print.clone(),
-            };
-            (c.save)(&state)?;
-        }
-        if let (Renderer::Gpu(gpu), Some(_)) = (renderer, device_state.as_ref())
-            && (densify_now || reset_now)
-        {
-            device_state =
-                Some(gpu.upload_state(&host_state(&s, &adam, &grad2d_sum, &grad2d_count))?);
+            (c.save)(&trainer.state()?)?;
         }
     }
-    if let (Renderer::Gpu(gpu), Some(device)) = (renderer, device_state.as_ref()) {
-        s = gpu.download_state(device)?.splats;
-    }
-    s.validate()?;
-    Ok(s)
-}
-
-fn host_state(s: &Splats, adam: &[Adam; 5], sum: &[f32], count: &[u32]) -> HostState {
-    HostState {
-        splats: s.clone(),
-        moments: adam.each_ref().map(|a| (a.m.clone(), a.v.clone())),
-        grad_sum: sum.to_vec(),
-        grad_count: count.to_vec(),
-    }
-}
-
-fn densify(
-    s: &mut Splats,
-    adam: &mut [Adam; 5],
-    sum: &[f32],
-    count: &[u32],
-    config: &TrainConfig,
-    extent: f32,
-    rng: &mut ChaCha8Rng,
-) {
-    let n = s.len();
-    let k = s.sh_coefficients();
-    let sigmoid = |x: f32| 1.0 / (1.0 + (-x).exp());
-    let mut keep: Vec<usize> = Vec::with_capacity(n);
-    let mut clones: Vec<usize> = Vec::new();
-    let mut splits: Vec<usize> = Vec::new();
-    for i in 0..n {
-        if sigmoid(s.opacity_logits[i]) < 0.005 {
-            continue;
-        }
-        keep.push(i);
-        let avg = if count[i] > 0 {
-            sum[i] / count[i] as f32
-        } else {
-            0.0
-        };
-        if avg > config.grad_threshold {
-            let largest = s.log_scales[i]
-                .iter()
-                .cloned()
-                .fold(f32::NEG_INFINITY, f32::max)
-                .exp();
-            if largest <= 0.01 * extent {
-                clones.push(i)
-            } else {
-                splits.push(i)
-            }
-        }
-    }
-    let room = config.max_splats.saturating_sub(keep.len());
-    clones.truncate(room);
-    splits.truncate(room.saturating_sub(clones.len()));
-    let mut added: Vec<(usize, [f32; 3], Option<[f32; 3]>)> =
-        clones.iter().map(|&i| (i, s.means[i], None)).collect();
-    for &i in &splits {
-        // Two samples from the Gaussian, both 1.6x smaller: the original becomes one of them.
-        let scales = s.log_scales[i].map(|v| v.exp());
-        let rot = crate::raster::quat_to_rotmat(s.quats[i]);
-        let mut samples = [[0.0f32; 3]; 2];
-        for sample in &mut samples {
-            let z = [0; 3].map(|_| {
-                let (u1, u2): (f32, f32) = (rng.random::<f32>().max(1e-7), rng.random());
-                (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
-            });
-            for a in 0..3 {
-                sample[a] =
-                    s.means[i][a] + (0..3).map(|b| rot[a][b] * scales[b] * z[b]).sum::<f32>();
-            }
-        }
-        let smaller = s.log_scales[i].map(|v| v - 1.6f32.ln());
-        s.means[i] = samples[0];
-        s.log_scales[i] = smaller;
-        added.push((i, samples[1], Some(smaller)));
-    }
-    let mut out = Splats {
-        sh_degree: s.sh_degree,
-        antialiased: s.antialiased,
-        appearance: s.appearance,
-        ..Default::default()
-    };
-    for &i in &keep {
-        out.means.push(s.means[i]);
-        out.log_scales.push(s.log_scales[i]);
-        out.quats.push(s.quats[i]);
-        out.opacity_logits.push(s.opacity_logits[i]);
-        out.sh.extend_from_slice(&s.sh[i * k..(i + 1) * k]);
-    }
-    for &(i, mean, scale) in &added {
-        out.means.push(mean);
-        out.log_scales.push(scale.unwrap_or(s.log_scales[i]));
-        out.quats.push(s.quats[i]);
-        out.opacity_logits.push(s.opacity_logits[i]);
-        out.sh.extend_from_slice(&s.sh[i * k..(i + 1) * k]);
-    }
-    for (a, stride) in adam.iter_mut().zip(moment_strides(k)) {
-        a.reindex(&keep, stride, added.len());
-    }
-    *s = out;
+    trainer.finish()
 }
 
 /// A model's figures over a set of views: means over the views where a
