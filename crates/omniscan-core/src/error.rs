@@ -8,7 +8,7 @@ use std::path::PathBuf;
 pub enum CoreError {
     /// The cause is in the message and not chained as a `source` too, or
     /// a report that prints the chain (`{:#}`) would say it twice.
-    #[error("{path}: {cause}")]
+    #[error("{path}: {}", plain_words(.cause))]
     Io {
         path: PathBuf,
         cause: std::io::Error,
@@ -24,6 +24,21 @@ pub enum CoreError {
     },
     #[error("{0}")]
     Invalid(String),
+}
+
+/// The OS's error in words a user reads without knowing error numbers
+/// ("Is a directory (os error 21)" said of a model path means the user gave
+/// a folder where a file belongs).
+fn plain_words(cause: &std::io::Error) -> String {
+    use std::io::ErrorKind;
+    match cause.kind() {
+        ErrorKind::NotFound => "no such file or directory".into(),
+        ErrorKind::IsADirectory => "is a directory, where a file was expected".into(),
+        ErrorKind::NotADirectory => "a part of the path is a file, not a directory".into(),
+        ErrorKind::PermissionDenied => "permission denied".into(),
+        ErrorKind::StorageFull => "no space left on the device".into(),
+        _ => cause.to_string(),
+    }
 }
 
 fn format_problems(problems: &[String]) -> String {
@@ -83,7 +98,19 @@ mod tests {
             chain.push_str(&format!(": {s}"));
             source = s.source();
         }
-        let cause = std::fs::read(path).unwrap_err().to_string();
-        assert_eq!(chain.matches(&cause).count(), 1, "{chain}");
+        assert_eq!(chain.matches("no such file").count(), 1, "{chain}");
+        assert!(!chain.contains("os error"), "{chain}");
+    }
+
+    #[test]
+    fn a_directory_given_for_a_file_is_said_plainly() {
+        let dir = std::env::temp_dir();
+        let error = CoreError::io(&dir, std::fs::read(&dir).unwrap_err());
+        assert!(
+            error
+                .to_string()
+                .ends_with(": is a directory, where a file was expected"),
+            "{error}"
+        );
     }
 }

@@ -41,8 +41,8 @@ pub struct RenderSettings {
     /// Image height for turntable views, pixels.
     #[arg(long, default_value_t = 480)]
     pub height: u32,
-    /// Background colour, three numbers in [0, 1], comma-separated.
-    #[arg(long, value_delimiter = ',', default_values_t = [0.0, 0.0, 0.0])]
+    /// Background colour, three numbers in [0, 1] (`1,1,1` or `1 1 1`).
+    #[arg(long, num_args = 1..=3, value_delimiter = ',', default_values_t = [0.0, 0.0, 0.0])]
     pub background: Vec<f32>,
     /// Where to render: auto (a real GPU when there is one, else the CPU), cpu, or gpu (any Vulkan/Metal/DX12 device, software ones included).
     #[arg(long, default_value = "auto")]
@@ -68,7 +68,7 @@ pub fn render(
 ) -> Result<RenderReport> {
     let splats = read_splats(model)?;
     let [r, g, b] = settings.background[..] else {
-        bail!("--background takes three numbers, e.g. 1,1,1");
+        bail!("--background takes three numbers in [0, 1], e.g. 1,1,1 or 1 1 1");
     };
     let cameras = cameras(&splats, settings)?;
     let render_settings = splats.render_settings([r, g, b]);

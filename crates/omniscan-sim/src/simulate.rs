@@ -111,6 +111,12 @@ pub fn load_object(spec: &str, scale: Option<f64>) -> Result<SimObject, SimError
         });
     }
     let path = Path::new(spec);
+    // `t_connector` for `builtin:t_connector`: say so rather than "no such file".
+    if !path.exists() && BUILTIN_OBJECTS.contains(&spec) {
+        return Err(SimError::Invalid(format!(
+            "no mesh file `{spec}`; did you mean the built-in object `builtin:{spec}`?"
+        )));
+    }
     let mut mesh = crate::loaders::load_mesh(path)?;
     let (lo, hi) = mesh.bounds();
     let extent = (hi - lo).max() as f64;

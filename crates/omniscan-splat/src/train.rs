@@ -542,7 +542,7 @@ pub fn train_resumable(
             && report.step % c.every == 0
             && report.step < config.steps
         {
-            (c.save)(&trainer.state()?)?;
+            (c.save)(&trainer.checkpoint()?)?;
         }
     }
     trainer.finish()

@@ -1,7 +1,7 @@
 //! The trainer as a step API (after Brush's `SplatTrainer::step`): build a
 //! [`Trainer`] from views and a start (fresh splats or a checkpoint's
 //! state), call [`Trainer::step`] until it returns `None`, take
-//! [`Trainer::state`] whenever a checkpoint is wanted, and
+//! [`Trainer::checkpoint`] whenever a checkpoint is wanted, and
 //! [`Trainer::finish`] for the model. One step renders one view, takes the
 //! masked loss (see [`crate::train`]), steps Adam ([`crate::adam`]) and, on
 //! refinement steps, lets the densification [`Strategy`] add and remove
@@ -418,7 +418,7 @@ impl<'a, V: TrainingView> Trainer<'a, V> {
     }
 
     /// Everything needed to go on exactly from here: a checkpoint.
-    pub fn state(&mut self) -> Result<TrainState, SplatError> {
+    pub fn checkpoint(&mut self) -> Result<TrainState, SplatError> {
         self.download()?;
         Ok(TrainState {
             step: self.steps_done(),

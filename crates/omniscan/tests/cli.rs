@@ -1634,3 +1634,91 @@ fn scan_bench_inspects_independently_trained_twins_and_resumes() {
         written
     );
 }
+
+/// What a newcomer trips over, said plainly: a built-in named without its
+/// prefix, a folder given for a model, a background in the help's own
+/// spelling, and one summary line where the whole report is `--json`'s.
+#[test]
+fn the_command_line_speaks_plainly() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("cap");
+    assert_refused(
+        &omniscan(&[
+            "sim",
+            "--object",
+            "t_connector",
+            "--out",
+            out.to_str().unwrap(),
+        ]),
+        "did you mean the built-in object `builtin:t_connector`?",
+    );
+    let capture = tmp.path().join("tiny");
+    tiny_capture(&capture);
+    let model = tmp.path().join("model.ply");
+    let trained = omniscan(&[
+        "train",
+        capture.to_str().unwrap(),
+        "--out",
+        model.to_str().unwrap(),
+        "--steps",
+        "20",
+        "--downscale",
+        "1",
+        "--backend",
+        "cpu",
+    ]);
+    assert!(
+        trained.status.success(),
+        "{}",
+        String::from_utf8_lossy(&trained.stderr)
+    );
+    let refused = omniscan(&["render", capture.to_str().unwrap(), "--out", "x"]);
+    assert_refused(&refused, "is a directory, where a file was expected");
+    assert!(!String::from_utf8_lossy(&refused.stderr).contains("os error"));
+    let renders = tmp.path().join("renders");
+    let rendered = omniscan(&[
+        "render",
+        model.to_str().unwrap(),
+        "--out",
+        renders.to_str().unwrap(),
+        "--orbit",
+        "1",
+        "--width",
+        "32",
+        "--height",
+        "24",
+        "--background",
+        "0.6",
+        "0.6",
+        "0.6",
+        "--backend",
+        "cpu",
+    ]);
+    assert!(
+        rendered.status.success(),
+        "{}",
+        String::from_utf8_lossy(&rendered.stderr)
+    );
+    assert!(renders.join("orbit_000.png").is_file());
+    let copy = tmp.path().join("copy.ply");
+    let copied = omniscan(&[
+        "make-copy",
+        model.to_str().unwrap(),
+        "--out",
+        copy.to_str().unwrap(),
+    ]);
+    assert!(
+        copied.status.success(),
+        "{}",
+        String::from_utf8_lossy(&copied.stderr)
+    );
+    assert_eq!(String::from_utf8_lossy(&copied.stdout).lines().count(), 1);
+    let json = omniscan_json(&[
+        "make-copy",
+        model.to_str().unwrap(),
+        "--out",
+        copy.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(json["original_to_copy"].is_array(), "{json}");
+}
