@@ -12,9 +12,11 @@ use omniscan_core::nerfstudio::{ExportOptions, export_nerfstudio};
 use omniscan_core::poses::ViewSet;
 use omniscan_sim::SimConfig;
 use omniscan_splat::backend::Renderer;
+use omniscan_splat::evaluation::Evaluation;
 use omniscan_splat::ply::write_splats;
 use omniscan_splat::raster::Appearance;
-use omniscan_splat::train::{Evaluation, TrainConfig, initial_splats, train};
+use omniscan_splat::train::{TrainConfig, initial_splats};
+use omniscan_splat::trainer::train;
 use omniscan_splat::views::{split_held_out, views_from_capture};
 
 use crate::Progress;
@@ -195,7 +197,7 @@ pub fn train_merged(
     )?;
     progress.finish();
     write_splats(out, &model)?;
-    let test = omniscan_splat::train::evaluate(&model, &test_views, None)?;
+    let test = omniscan_splat::evaluation::evaluate(&model, &test_views, None)?;
     progress.note(&format!(
         "    {} splats; held-out views: PSNR {:.2} dB, masked PSNR {:.2} dB",
         model.len(),

@@ -8,7 +8,7 @@ use anyhow::Result;
 use serde::{Deserialize, Serialize};
 
 use omniscan_splat::backend::{Backend, Renderer};
-use omniscan_splat::train::Evaluation;
+use omniscan_splat::evaluation::Evaluation;
 use omniscan_splat::views::{View, split_held_out_from};
 
 use crate::Progress;
@@ -95,7 +95,7 @@ pub fn evaluate(
         progress.note(&format!("rendering on {}", renderer.describe()));
     }
     progress.start("evaluating", indices.len() as u64, "views");
-    let mut evaluation = omniscan_splat::train::evaluate_views(
+    let mut evaluation = omniscan_splat::evaluation::evaluate_views(
         &model,
         &renderer,
         indices.len(),

@@ -12,13 +12,14 @@ use serde::{Deserialize, Serialize};
 use omniscan_core::poses::ViewSet;
 use omniscan_splat::Splats;
 use omniscan_splat::backend::{Backend, Renderer};
+use omniscan_splat::evaluation::Evaluation;
 use omniscan_splat::packed::PackedView;
 use omniscan_splat::ply::write_splats;
 use omniscan_splat::raster::Appearance;
 use omniscan_splat::train::{
-    Checkpoints, Densification, Evaluation, Start, TrainConfig, initial_splats, splats_from_points,
-    train_resumable,
+    Densification, Start, TrainConfig, initial_splats, splats_from_points,
 };
+use omniscan_splat::trainer::{Checkpoints, train_resumable};
 use omniscan_splat::views::{ViewSource, split_held_out_from};
 
 use crate::Progress;
@@ -289,12 +290,12 @@ pub fn train(
             .with_context(|| format!("removing {}", checkpoint.display()))?;
     }
     let lpips = load_lpips(settings.lpips.as_deref(), settings.onnx_runtime.as_deref())?;
-    let test = omniscan_splat::train::evaluate(&model, &test_views, lpips.as_ref())?;
+    let test = omniscan_splat::evaluation::evaluate(&model, &test_views, lpips.as_ref())?;
     // The same figures on the views it trained on tell underfitting from
     // poor generalisation: on DTU scan37 after 3000 steps the held-out views'
     // 24 dB looked like overfitting until the training views' own 27 dB
     // showed the model had not yet fitted them either.
-    let fit = omniscan_splat::train::evaluate(&model, &train_views, None)?;
+    let fit = omniscan_splat::evaluation::evaluate(&model, &train_views, None)?;
     Ok(TrainReport {
         model: out.to_path_buf(),
         splats: model.len(),

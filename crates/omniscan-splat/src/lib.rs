@@ -17,6 +17,7 @@ pub mod adam;
 pub mod backend;
 pub mod backward;
 pub mod checkpoint;
+pub mod evaluation;
 pub mod gpu;
 pub mod lpips;
 pub mod mcmc;

@@ -460,3 +460,49 @@ fn host_state(s: &Splats, adam: &[Adam; 5], sum: &[f32], count: &[u32]) -> HostS
         grad_count: count.to_vec(),
     }
 }
+
+/// Trains `splats` on `views`; `progress(step, loss, psnr)` is called every
+/// step. On the CPU renderer everything runs on the CPU; on a GPU the
+/// parameters stay on the device, where rendering, gradients and Adam run,
+/// and the loss and densification run on the CPU.
+pub fn train(
+    views: &[impl TrainingView],
+    s: Splats,
+    config: &TrainConfig,
+    renderer: &Renderer,
+    progress: &mut dyn FnMut(usize, f32, f64),
+) -> Result<Splats, SplatError> {
+    train_resumable(views, Start::Fresh(s), config, renderer, None, progress)
+}
+
+/// Periodic checkpoints: `save` is called with the whole training state
+/// every `every` steps.
+pub struct Checkpoints<'a> {
+    pub every: usize,
+    pub save: &'a mut dyn FnMut(&TrainState) -> Result<(), SplatError>,
+}
+
+/// Training with optional resumption and checkpoints (see [`train`]): a
+/// [`Trainer`] stepped to the end, its state saved
+/// every `checkpoints.every` steps (not after the last).
+pub fn train_resumable(
+    views: &[impl TrainingView],
+    start: Start,
+    config: &TrainConfig,
+    renderer: &Renderer,
+    mut checkpoints: Option<Checkpoints<'_>>,
+    progress: &mut dyn FnMut(usize, f32, f64),
+) -> Result<Splats, SplatError> {
+    let mut trainer = Trainer::new(views, start, config, renderer)?;
+    while let Some(report) = trainer.step()? {
+        progress(report.step, report.loss, report.psnr);
+        if let Some(c) = checkpoints.as_mut()
+            && c.every > 0
+            && report.step % c.every == 0
+            && report.step < config.steps
+        {
+            (c.save)(&trainer.checkpoint()?)?;
+        }
+    }
+    trainer.finish()
+}

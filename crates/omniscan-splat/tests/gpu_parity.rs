@@ -423,7 +423,8 @@ fn assert_losses_follow(label: &str, cpu: &[f32], gpu: &[f32]) {
 fn training_on_the_gpu_follows_the_cpu_reference() {
     use omniscan_splat::Splats;
     use omniscan_splat::backend::Renderer;
-    use omniscan_splat::train::{TrainConfig, train};
+    use omniscan_splat::train::TrainConfig;
+    use omniscan_splat::trainer::train;
     let views = training_views(&[(64, 48); 4]);
     let splats = training_start();
     let adaptive = densifying(30);
@@ -493,7 +494,7 @@ fn training_on_the_gpu_follows_the_cpu_reference() {
 fn views_kept_on_the_device_or_sent_each_step_train_alike() {
     use omniscan_splat::backend::Renderer;
     use omniscan_splat::gpu::training::{DEFAULT_VIEW_MEMORY, ViewTargets};
-    use omniscan_splat::train::train;
+    use omniscan_splat::trainer::train;
     let views = training_views(&[(64, 48), (48, 36), (64, 48), (48, 36)]);
     // A target is 5 floats a pixel.
     let bytes = |(w, h): (u64, u64)| 20 * w * h;
@@ -672,7 +673,8 @@ fn mcmc_noise_on_the_gpu_matches_the_cpu() {
 #[ignore = "needs a Vulkan device (lavapipe: apt-get install mesa-vulkan-drivers)"]
 fn evaluation_on_the_gpu_matches_the_cpu() {
     use omniscan_splat::backend::Renderer;
-    use omniscan_splat::train::{evaluate_views, splats_from_points};
+    use omniscan_splat::evaluation::evaluate_views;
+    use omniscan_splat::train::splats_from_points;
     use omniscan_splat::views::View;
     // A model of opaque splats at random points (SH degree 1), scored
     // against its own renders from cameras 8 cm off: a fair fit, so no
@@ -726,7 +728,7 @@ fn evaluation_on_the_gpu_matches_the_cpu() {
     let cpu = score(&Renderer::Cpu);
     let gpu = score(&Renderer::Gpu(Box::new(renderer())));
     assert_eq!(gpu.views, 3);
-    let figures = |e: &omniscan_splat::train::Evaluation| {
+    let figures = |e: &omniscan_splat::evaluation::Evaluation| {
         [
             ("psnr", e.psnr),
             ("ssim", e.ssim),

@@ -455,7 +455,7 @@ const NO_MASKED_PSNR: &str = "masked PSNR none (the model covers none of their o
 /// The held-out views' figures in words; without held-out views
 /// (--hold-out-every 0) there is nothing to score, which it says rather
 /// than print NaN.
-fn held_out(test: &omniscan_splat::train::Evaluation) -> String {
+fn held_out(test: &omniscan_splat::evaluation::Evaluation) -> String {
     match (test.psnr, test.psnr_masked) {
         (Some(psnr), Some(masked)) => {
             format!("held-out views: PSNR {psnr:.2} dB, masked PSNR {masked:.2} dB")
@@ -477,7 +477,7 @@ fn scores(report: &omniscan_pipeline::train::TrainReport) -> String {
     }
 }
 
-fn print_evaluation(e: &omniscan_splat::train::Evaluation) {
+fn print_evaluation(e: &omniscan_splat::evaluation::Evaluation) {
     let f = |v: Option<f64>| v.unwrap_or(f64::NAN);
     println!(
         "{} views: PSNR {:.2} dB, SSIM {:.4}; masked PSNR {:.2} dB, masked SSIM {:.4}; {}",
