@@ -5,8 +5,7 @@
 //! within a radius (Open3D's hybrid search), FPFH the same with a larger k,
 //! and ICP the nearest target point within the correspondence distance. A
 //! k-d tree (kiddo, [`crate::neighbors`]) answers each query on its own, with a
-//! heap of candidates; on a 32k-point scan that was 40 ms for the gradients
-//! and 34 ms for a 16-NN graph, most of colored ICP's time. With cells at
+//! heap of candidates, which was most of colored ICP's time. With cells at
 //! least as wide as the radius, a ball around any point of a cell lies inside
 //! that cell's 3x3x3 block, so all points of one cell share one candidate
 //! list: it is gathered once per cell and every query in the cell scans it
@@ -19,8 +18,7 @@
 //! Written here because the crates we use answer one query at a time
 //! (kiddo's batch queries still search the tree once per point); the k-d
 //! tree stays for what a grid does badly (k nearest without a radius, far
-//! outliers). Measured after the change on the same scan: gradients 18-24
-//! ms, the 16-NN graph 17 ms (2 threads).
+//! outliers). The figures are in docs/results.md.
 
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
@@ -220,9 +218,7 @@ impl Candidates {
     /// Every candidate is written and only those inside advance the end,
     /// so the loop has no branch on the distance: about two in five are
     /// kept, in no order the predictor can learn, and the filtering
-    /// version's mispredictions were most of its time (colored ICP's
-    /// gradients and neighbour graph on `frag_115`: 21.8 → 19.6 ms, median
-    /// of three alternated rounds).
+    /// version's mispredictions were most of its time (docs/results.md).
     fn within(&self, r2: f64, found: &mut Vec<(usize, f64)>) {
         found.resize(self.d2.len(), (0, 0.0));
         let mut kept = 0;
@@ -243,8 +239,8 @@ impl Candidates {
 /// in it, so that consecutive queries read the neighbour lists and
 /// coordinates of nearby target points one after another. A cloud's stored
 /// order can jump across it: marching cubes' vertex order, or splat centres
-/// after densification. The keys are sorted by radix: `par_sort_unstable`
-/// took 1.7-2.0 ms on 32k points, this whole function 0.55 ms.
+/// after densification. The keys are sorted by radix, three times faster
+/// than `par_sort_unstable` here (docs/results.md).
 pub fn coherent_order(points: &[Point3<f64>]) -> Vec<u32> {
     const BITS: u32 = 8;
     let (lo, hi) = bounds(points);
@@ -536,8 +532,7 @@ impl Grid {
         // cloned into point order, each written once where it ends up.
         // Collecting per cell, concatenating, and scattering through a
         // vector of options wrote every result four times, into fresh
-        // pages each time (colored ICP's gradients and graph on
-        // `frag_115`, 128 bytes a point: 21.9 → 19.7 ms).
+        // pages each time.
         let cells: Vec<[i64; 3]> = self.sorted.iter().map(|p| self.coords_of(p)).collect();
         let query = |cand: &mut B, scratch: &mut Scratch, k: usize| {
             let p = &self.sorted[k];
@@ -618,9 +613,8 @@ impl Grid {
             // about the same k-th distance: the candidates within a little
             // more than the last one's hold this query's k nearest if there
             // are k of them, and are far fewer to select from than all
-            // those within reach (on `frag_115`, the graph's pass took 16 ms
-            // before). The guess changes the speed and the order the
-            // neighbours come out in, not which they are.
+            // those within reach. The guess changes the speed and the order
+            // the neighbours come out in, not which they are.
             let guess = scratch.last_kth * 1.25;
             if guess < reach {
                 cand.within(guess * guess, found);
@@ -629,9 +623,7 @@ impl Grid {
                 // Only points within reach can be among a certain answer.
                 cand.within(reach * reach, found);
             }
-            // Selected, not sorted: the callers need only sets (colored ICP
-            // on `frag_115`, whose gradients take 30 per point, went from 70
-            // to 64.5 ms).
+            // Selected, not sorted: the callers need only sets.
             keep_nearest(found, k);
             // Set even without k found (to no guess): a query that
             // `each_point` repeats must leave the guess it left the first
@@ -662,11 +654,8 @@ impl Grid {
     /// that hold every point within their reach, not exact nearest sets.
     /// Distances in f32, with `reach` short by a bound on their rounding,
     /// measured four to a vector instruction and then compacted, and the
-    /// selection split at the last query's k-th distance first: on
-    /// `frag_115`'s 32k-point half the graph took 6.6-6.8 ms, where
-    /// [`Grid::knn_map`]'s exact f64 answer takes 8.0, and point-to-plane
-    /// ICP there went from 57.1-57.6 to 53.2-55.0 ms (medians of 21,
-    /// alternated binaries, four rounds).
+    /// selection split at the last query's k-th distance first: faster
+    /// than [`Grid::knn_map`]'s exact f64 answer (docs/results.md).
     pub fn knn_lists<T: Send + Sync + Clone>(
         &self,
         k: usize,
@@ -770,9 +759,7 @@ pub fn hybrid_search<T: Send + Sync + Clone>(
 ///
 /// Offers take no branch: which offer improves on the nearest is as good as
 /// random, and a branch on it was mispredicted two or three times a query
-/// that measures a few dozen candidates. (ICP's fresh searches on
-/// `frag_115`, 32k queries within 16 mm: 3.1-3.3 → 2.1 ms; its
-/// point-to-plane ICP, 59.8-61.3 → 58.5-58.8 ms.)
+/// that measures a few dozen candidates (docs/results.md).
 struct NearestTwo {
     /// The nearest's index, `usize::MAX` before any offer.
     best: usize,

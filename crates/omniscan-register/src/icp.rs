@@ -179,13 +179,10 @@ pub struct Target<'a> {
     /// ([`coherent_order`]), so that a walk's neighbour lists and
     /// coordinates lie near each other in memory: the target's indices
     /// (its k-d tree's answers, for one) are of this order, not the caller's.
-    /// (With `frag_115`'s halves shuffled, as splat centres come, and the
-    /// source taken in this order, point-to-plane ICP took 77 ms with the
-    /// target as given and 57 ms with it in this order.)
+    /// A shuffled cloud (splat centres) then costs no more than a scanned one.
     pub cloud: Cow<'a, PointCloud>,
     /// The k-d tree, built by the first query that needs it: ICP on a grid
-    /// never does (on `frag_115`'s 32k points the build took ~4 ms of a
-    /// 80 ms point-to-plane run).
+    /// never does, and the build is a twentieth of a point-to-plane run.
     tree: std::sync::OnceLock<Neighbors>,
     grid: std::sync::OnceLock<Grid>,
     graph: std::sync::OnceLock<NeighborGraph>,
@@ -199,11 +196,9 @@ pub struct Target<'a> {
 /// entry's (never more: a walk's answers are exact whatever lists it walks,
 /// as long as each holds every point nearer than its reach). A walk step
 /// reads the neighbours' coordinates from the target's f32 copy, small
-/// enough to stay in cache. (Lists holding their
-/// neighbours' coordinates took 264 bytes a point, 8.5 MB on `frag_115`
-/// against a 2 MB L2, and the walk waited on them: point-to-plane ICP there,
-/// which moves every point about one spacing per iteration, median 0.105 s
-/// before and 0.098 s after over three interleaved rounds of 21 runs.)
+/// enough to stay in cache: lists holding their neighbours' coordinates
+/// took 264 bytes a point, four times a 2 MB L2 on a 32k-point cloud, and
+/// the walk waited on them.
 struct NeighborGraph {
     lists: Vec<NeighborList>,
 }
@@ -404,12 +399,9 @@ impl<'a> Target<'a> {
     /// A pass calls this for the point a few places ahead and discards the
     /// value: the loads start those cache misses early. The processor
     /// cannot, being hundreds of instructions behind; the lists, points and
-    /// normals of a 32k-point target are 3.5 MB against a 2 MB L2. (On
-    /// `frag_115`, point-to-plane ICP, medians of 21 in eight alternated
-    /// rounds: 54.4 → 52.2 ms; colored, point-to-point and generalized ICP
-    /// about the same as before. In a first trial lists alone, or points
-    /// and normals alone, gained about half as much, two points ahead about
-    /// as much as three, and the f32 coordinates as well nothing more.)
+    /// normals of a 32k-point target are 3.5 MB against a 2 MB L2. Lists,
+    /// points and normals together: each alone gained about half as much
+    /// (docs/results.md).
     /// Stable Rust has no safe prefetch instruction, and this crate has no
     /// `unsafe`.
     fn touch(&self, j: u32) -> u64 {
@@ -623,12 +615,10 @@ struct Found<A> {
 /// each correspondence to the estimator's sums while the points and their
 /// matches are in cache: moving the points, searching and summing in
 /// separate passes re-read every point three times and built a list of
-/// the pairs. On `frag_115` point-to-point ICP went from 58 to 43 ms;
-/// point-to-plane, whose sums are more arithmetic than reading, gained 3%.
+/// the pairs (docs/results.md).
 struct Matcher<'a> {
     /// The source points in a spatially coherent order ([`coherent_order`]),
-    /// and each one's index in the source. (On `frag_115`'s halves, in
-    /// the mesh's vertex order, point-to-plane ICP went from 62 to 56 ms.)
+    /// and each one's index in the source.
     source: Vec<Point3<f64>>,
     order: Vec<u32>,
     target: &'a Target<'a>,
@@ -672,16 +662,12 @@ impl<'a> Matcher<'a> {
         let before = match self.last_pose.replace((rotation, translation)) {
             Some(before) if self.hints.len() == self.source.len() => Some(before),
             _ => {
-                // First pass: fresh searches seed the hints. (Batched by
-                // grid cell, sharing each cell's candidates, they took 2 ms
-                // more of a 65 ms colored ICP on `frag_115`.) They read only
-                // the cells within the correspondence distance (at most half
-                // a cell), so at most 8 of the block's 27: a point with
-                // nothing that near is searched again once it moves, but the
-                // first pass costs far less (on `frag_115`, median of eight
-                // alternated rounds: colored ICP 63.5 → 61.2 ms,
-                // point-to-plane 69.3 → 66.3 ms; with a 40% overlap no
-                // slower).
+                // First pass: fresh searches seed the hints (batched by grid
+                // cell they were slower). They read only the cells within
+                // the correspondence distance (at most half a cell), so at
+                // most 8 of the block's 27: a point with nothing that near is
+                // searched again once it moves, but the first pass costs far
+                // less (docs/results.md).
                 let radius = self.max_distance;
                 self.hints = self
                     .source

@@ -70,9 +70,8 @@ impl Adam {
     /// Plain loops over contiguous chunks, not a zip of per-element
     /// iterators with a rate closure: the compiler vectorises them. Before,
     /// an integer division per SH value picked its rate and the unused
-    /// bands' zero gradients were copied out every step, and the optimiser
-    /// phase of a 3000-step DTU run (Adam and the densification statistics)
-    /// took 46 s of it; after, 10-13 s. Each value sees the same operations
+    /// bands' zero gradients were copied out every step, and that was most
+    /// of the optimiser's time (docs/results.md). Each value sees the same operations
     /// as before, so the result is the same to the bit.
     pub(crate) fn step_rows(
         &mut self,

@@ -8,6 +8,13 @@
 //! 1/255, stop when transmittance falls to 1e-4), and is written generically
 //! over the float type so the same code runs in f32 and, for conformance and
 //! finite-difference checks, in f64.
+//!
+//! Training: [`train`] holds the settings, the masked loss and the
+//! initialisation; [`trainer::Trainer`] steps a run (CPU or GPU alike);
+//! [`strategy`] holds the densification strategies behind one trait;
+//! [`adam`] the optimiser; [`evaluation`] the typed figures; [`view`],
+//! [`packed`] and [`views`] a training view, its packed form and where views
+//! come from.
 
 // Kernels index parallel arrays (xyz, RGB, matrix rows) by the same loop
 // variable; iterator chains would hide the maths.

@@ -15,16 +15,12 @@
 //! x86-64 cannot assume it. Every sum keeps the order of a plain
 //! pixel-by-pixel loop, and Rust never fuses a multiply and an add, so each
 //! path gives the plain loops' bits (`banded_ssim_sums_as_plain_pixel_loops_do_at_every_size`),
-//! and a trained model is the same to the byte. SSIM and gradient of one
-//! 640x480 image on one thread: 66 ms as whole planes, 47 ms banded, 30 ms
-//! with AVX2.
+//! and a trained model is the same to the byte. Bands and AVX2 more than
+//! halve the SSIM's time (docs/results.md).
 //!
 //! The passes are generic over their float type ([`SsimFloat`]). Reported
 //! metrics use f64. The training loss uses f32, as gsplat's does: an AVX2
-//! vector holds eight lanes instead of four. Measured in one run (one
-//! thread, 640x480), the SSIM and gradient took 30 ms in f32 against 51 in
-//! f64; a CPU training step at 640x480 on 50k Gaussians took 128 ms against
-//! 144 (`bench splat`, medians of five interleaved runs). The f32 figures
+//! vector holds eight lanes instead of four (docs/results.md). The f32 figures
 //! stay within 1e-6 of the f64 value and 5e-5 of the largest gradient
 //! (`f32_ssim_and_gradient_agree_with_f64`).
 

@@ -10,10 +10,8 @@
 //! The views' loss targets stay on the device too ([`ViewTargets`]): a view
 //! is unpacked, packed for the loss and sent once, at its first step, while
 //! the kept targets fit their budget. Done at every step, that host work
-//! took 4.9 ms of each 640x480 step (unpacking 1.1, packing 1.5, sending 1.8,
-//! the loss's weight 0.5; 250 steps on two cores beside lavapipe), serial
-//! with the device's work, and about 27 times that at 4K; kept, a view costs
-//! it once. The loss's working planes are kept from step to step as well
+//! is serial with the device's work and grows with the image (figures in
+//! docs/results.md); kept, a view costs it once. The loss's working planes are kept from step to step as well
 //! (`LossBuffers`).
 
 use super::{
