@@ -22,6 +22,18 @@
 //!
 //! Errors are `anyhow` errors whose message names the file and the problem;
 //! the CLI prints them with their context (`{:#}`).
+//!
+//! ```no_run
+//! use omniscan_pipeline::Silent;
+//! use omniscan_pipeline::twin::{TwinSettings, twin};
+//!
+//! # fn main() -> anyhow::Result<()> {
+//! let settings = TwinSettings { steps: 1000, ..TwinSettings::default() };
+//! let report = twin("scans/tee".as_ref(), "twins/tee".as_ref(), &settings, &Silent)?;
+//! println!("{} splats", report.stages.twin.report.splats);
+//! # Ok(())
+//! # }
+//! ```
 
 pub mod align;
 pub mod demo;

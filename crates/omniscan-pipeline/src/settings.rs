@@ -24,3 +24,63 @@ macro_rules! default_from_flags {
     )*};
 }
 pub(crate) use default_from_flags;
+
+#[cfg(test)]
+mod tests {
+    use crate::align::{AlignSettings, Method};
+    use crate::evaluate::EvalSettings;
+    use crate::inspect::{InspectionSettings, MakeCopySettings};
+    use crate::mask::{GripperMethod, MaskingSettings};
+    use crate::render::RenderSettings;
+    use crate::simulate::{PlanSettings, SimulateSettings};
+    use crate::train::TrainSettings;
+    use crate::twin::TwinSettings;
+
+    /// Every settings struct has a default (no required field), and the
+    /// default is the documented one, here where the docs state it.
+    #[test]
+    fn defaults_parse() {
+        let twin = TwinSettings::default();
+        assert_eq!(
+            (twin.steps, twin.downscale, twin.checkpoint_every),
+            (3000, 2, 500)
+        );
+        let align = AlignSettings::default();
+        assert_eq!(
+            (align.method, align.iterations, align.downscale),
+            (Method::Auto, 30, 2)
+        );
+        let eval = EvalSettings::default();
+        assert_eq!((eval.downscale, eval.held_out_every), (1, 0));
+        let mask = MaskingSettings::default();
+        assert_eq!(mask.gripper, GripperMethod::Kinematic);
+        assert_eq!(
+            (mask.non_robot_threshold_mm, mask.non_gripper_threshold),
+            (8.0, 0.89)
+        );
+        assert_eq!(PlanSettings::default().wrist_angles, 20);
+        let _ = (
+            TrainSettings::default(),
+            RenderSettings::default(),
+            InspectionSettings::default(),
+            MakeCopySettings::default(),
+            SimulateSettings::default(),
+        );
+    }
+
+    /// A settings file names only what it changes.
+    #[test]
+    fn settings_read_from_json_keep_the_other_defaults() {
+        let twin: TwinSettings = serde_json::from_str(r#"{"steps": 100}"#).unwrap();
+        assert_eq!(
+            twin,
+            TwinSettings {
+                steps: 100,
+                ..TwinSettings::default()
+            }
+        );
+        let back: TwinSettings =
+            serde_json::from_str(&serde_json::to_string(&twin).unwrap()).unwrap();
+        assert_eq!(back, twin);
+    }
+}

@@ -142,6 +142,22 @@ pub struct MergedBy {
     pub from: String,
 }
 
+/// What a model's first splats came from: `"visual hull"` in JSON, or the
+/// list of point files.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum StartedFrom {
+    /// The masks' visual hull (its JSON is the words "visual hull").
+    VisualHull(String),
+    Points(Vec<PathBuf>),
+}
+
+impl StartedFrom {
+    pub fn visual_hull() -> StartedFrom {
+        StartedFrom::VisualHull("visual hull".into())
+    }
+}
+
 /// The settings a model was trained with, as the trainer used them
 /// (defaults resolved).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -156,8 +172,7 @@ pub struct TrainedWith {
     pub sh_rest_lr: f32,
     pub max_splats: usize,
     pub seed: u64,
-    /// "visual hull", or the point files it started from.
-    pub init: serde_json::Value,
+    pub init: StartedFrom,
     pub right_to_left: Option<MergedBy>,
 }
 
@@ -501,9 +516,9 @@ fn trained_with(
         max_splats: config.max_splats,
         seed: config.seed,
         init: match (init, &settings.init_right) {
-            (None, None) => "visual hull".into(),
+            (None, None) => StartedFrom::visual_hull(),
             (left, right) => {
-                serde_json::json!([left, right].into_iter().flatten().collect::<Vec<_>>())
+                StartedFrom::Points([left, right].into_iter().flatten().cloned().collect())
             }
         },
         right_to_left: merged_by.map(|pose| MergedBy {

@@ -361,7 +361,10 @@ fn train_stage(
     stage.report.model = out.to_path_buf();
     if let (Some(m), Some(merged_by)) = (merged, stage.report.settings.right_to_left.as_mut()) {
         merged_by.from = m.transform.display().to_string();
-        stage.report.settings.init = serde_json::json!([m.init_left, m.init_right]);
+        stage.report.settings.init = crate::train::StartedFrom::Points(vec![
+            m.init_left.to_path_buf(),
+            m.init_right.to_path_buf(),
+        ]);
     }
     Ok(stage)
 }
