@@ -379,48 +379,78 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     report.insert("processor".into(), json!(processor_name()));
     report.insert("frag_115_local".into(), json!({"points": [source.len(), target.len()], "spacing_m": spacing, "max_distance_m": max_distance, "iterations": iterations, "omniscan": ours}));
 
-    if args.open3d_python.is_some() {
-        let mut table = Vec::new();
-        for (m, &name) in methods.iter().enumerate() {
-            let ours_t = ours[name]["seconds"].as_f64().unwrap_or(f64::NAN);
-            let theirs_t = median(&their_times[m]);
-            // Each round's ratio of two neighbouring calls: how far the machine's drift moved it.
-            let ratios: Vec<f64> = their_times[m]
-                .iter()
-                .zip(&our_times[m])
-                .map(|(theirs, ours)| theirs / ours)
-                .collect();
-            let mut row = json!({"method": name, "omniscan_s": ours_t, "open3d_s": theirs_t, "speedup": theirs_t / ours_t, "speedup_per_round": {"min": ratios.iter().copied().fold(f64::INFINITY, f64::min), "median": median(&ratios), "max": largest(&ratios)}});
-            let o3d = &their_results[m];
-            if name != "fpfh" {
-                let rows: [[f64; 4]; 4] = serde_json::from_value(o3d["transform"].clone())?;
-                let theirs = pose_from_rows(&rows)?;
-                let (rot, trans) = pose_difference(&theirs, &truth);
-                let ours_rows: [[f64; 4]; 4] =
-                    serde_json::from_value(ours[name]["transform"].clone())?;
-                let (drot, dtrans) = pose_difference(&pose_from_rows(&ours_rows)?, &theirs);
-                row["open3d_rotation_error_deg"] = json!(rot.to_degrees());
-                row["open3d_translation_error_m"] = json!(trans);
-                row["open3d_fitness"] = o3d["fitness"].clone();
-                row["omniscan_fitness"] = ours[name]["fitness"].clone();
-                row["omniscan_rotation_error_deg"] = ours[name]["rotation_error_deg"].clone();
-                row["difference_to_open3d_deg"] = json!(drot.to_degrees());
-                row["difference_to_open3d_m"] = json!(dtrans);
-            } else {
-                row["open3d_row_sum"] = o3d["row_sum_mean"].clone();
-                row["omniscan_row_sum"] = ours[name]["row_sum_mean"].clone();
-            }
-            table.push(row);
-        }
-        report.insert("versus_open3d".into(), json!(table));
+    let versus = match args.open3d_python {
+        Some(_) => versus_open3d(
+            &methods,
+            &ours,
+            &our_times,
+            &their_times,
+            &their_results,
+            &truth,
+        )?,
+        None => json!("not measured: pass --open3d-python PATH (a Python with open3d 0.20)"),
+    };
+    report.insert("versus_open3d".into(), versus);
+    report.insert("global".into(), global_trials(&args, &frag)?);
+    let report = Value::Object(report);
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
-        report.insert(
-            "versus_open3d".into(),
-            json!("not measured: pass --open3d-python PATH (a Python with open3d 0.20)"),
-        );
+        print_bench(&report);
     }
+    Ok(())
+}
 
-    // Global registration: random rotations of disjoint halves.
+/// omniscan against Open3D, method by method: the median times, their
+/// ratio and its spread over the rounds, and how far each side's transform
+/// is from the truth and from the other's.
+fn versus_open3d(
+    methods: &[&str],
+    ours: &serde_json::Map<String, Value>,
+    our_times: &[Vec<f64>],
+    their_times: &[Vec<f64>],
+    their_results: &[Value],
+    truth: &Pose,
+) -> Result<Value> {
+    let largest = |v: &[f64]| v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let mut table = Vec::new();
+    for (m, &name) in methods.iter().enumerate() {
+        let ours_t = ours[name]["seconds"].as_f64().unwrap_or(f64::NAN);
+        let theirs_t = median(&their_times[m]);
+        // Each round's ratio of two neighbouring calls: how far the machine's drift moved it.
+        let ratios: Vec<f64> = their_times[m]
+            .iter()
+            .zip(&our_times[m])
+            .map(|(theirs, ours)| theirs / ours)
+            .collect();
+        let mut row = json!({"method": name, "omniscan_s": ours_t, "open3d_s": theirs_t, "speedup": theirs_t / ours_t, "speedup_per_round": {"min": ratios.iter().copied().fold(f64::INFINITY, f64::min), "median": median(&ratios), "max": largest(&ratios)}});
+        let o3d = &their_results[m];
+        if name != "fpfh" {
+            let rows: [[f64; 4]; 4] = serde_json::from_value(o3d["transform"].clone())?;
+            let theirs = pose_from_rows(&rows)?;
+            let (rot, trans) = pose_difference(&theirs, truth);
+            let ours_rows: [[f64; 4]; 4] = serde_json::from_value(ours[name]["transform"].clone())?;
+            let (drot, dtrans) = pose_difference(&pose_from_rows(&ours_rows)?, &theirs);
+            row["open3d_rotation_error_deg"] = json!(rot.to_degrees());
+            row["open3d_translation_error_m"] = json!(trans);
+            row["open3d_fitness"] = o3d["fitness"].clone();
+            row["omniscan_fitness"] = ours[name]["fitness"].clone();
+            row["omniscan_rotation_error_deg"] = ours[name]["rotation_error_deg"].clone();
+            row["difference_to_open3d_deg"] = json!(drot.to_degrees());
+            row["difference_to_open3d_m"] = json!(dtrans);
+        } else {
+            row["open3d_row_sum"] = o3d["row_sum_mean"].clone();
+            row["omniscan_row_sum"] = ours[name]["row_sum_mean"].clone();
+        }
+        table.push(row);
+    }
+    Ok(json!(table))
+}
+
+/// Global registration of disjoint halves under random rotations and
+/// shifts, on `frag` and the splat models in `--splats`: the share of
+/// trials within 0.5° and their times.
+fn global_trials(args: &BenchArgs, frag: &PointCloud) -> Result<Value> {
     let mut global = Vec::new();
     let mut datasets: Vec<(String, PointCloud)> = vec![("frag_115".into(), frag.clone())];
     if let Some(dir) = &args.splats {
@@ -496,17 +526,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             max_t
         );
     }
-    report.insert(
-        "global".into(),
-        json!({"per_dataset": global, "success_rate": all_ok as f64 / all.max(1) as f64}),
-    );
-    let report = Value::Object(report);
-    if args.json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
-    } else {
-        print_bench(&report);
-    }
-    Ok(())
+    Ok(json!({"per_dataset": global, "success_rate": all_ok as f64 / all.max(1) as f64}))
 }
 
 fn print_bench(report: &Value) {
