@@ -2,6 +2,7 @@
 
 use std::time::Instant;
 
+use nalgebra::Point3;
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -17,7 +18,7 @@ use crate::differencing::{
 };
 use crate::photometric::{ColourCorrection, match_colours};
 use crate::verdict::{
-    Kind, PairEvidence, Verdict, VerdictSettings, apply_noise_floors, candidate_regions,
+    Kind, PairEvidence, Region, Verdict, VerdictSettings, apply_noise_floors, candidate_regions,
     name_defective,
 };
 use crate::views::{
@@ -205,6 +206,108 @@ const MAX_SIDE: u32 = 4096;
 /// reference frame everything is aligned to.
 pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspection, InspectError> {
     let start = Instant::now();
+    let candidates = check_inputs(models, settings)?;
+    let unit = settings.units_per_metre / 1000.0;
+    let (centre, radius) = robust_bounds(&models[0]);
+    let size_m = 2.0 * radius / settings.units_per_metre;
+    if !(0.005..=1.0).contains(&size_m) {
+        tracing::warn!(
+            "the reference model spans about {size_m:.3} m at {} units per metre: \
+             is --units-per-metre right?",
+            settings.units_per_metre
+        );
+    }
+    let views = framed_views(&models[0], &centre, radius, settings);
+    let alignments = align_all(models, settings, &centre, radius)?;
+    let align_done = Instant::now();
+
+    let aligned: Vec<Splats> = models
+        .iter()
+        .zip(&alignments)
+        .map(|(m, a)| {
+            if a.method == "identity" {
+                Ok(m.clone())
+            } else {
+                m.transformed(&a.transform, 1.0)
+            }
+        })
+        .collect::<Result<_, _>>()?;
+    let renderer = Renderer::new(settings.backend)?;
+    let renders: Vec<Vec<ViewRender>> = aligned
+        .iter()
+        .map(|m| render_views_on(&renderer, m, &views))
+        .collect::<Result<_, _>>()?;
+    let spacing = settings.spacing_mm * unit;
+    let (surfaces, colour_corrections) = sample_surfaces(&renders, &views, spacing, settings);
+    let render_done = Instant::now();
+
+    let threshold = settings.threshold_mm * unit;
+    let (pixels, pairs) = compare_all(&renders, &surfaces, &views, spacing, settings);
+    let verdict_settings = VerdictSettings {
+        spacing,
+        units_per_metre: settings.units_per_metre,
+        match_radius: 3.0 * spacing,
+        min_geometric_area_mm2: settings
+            .min_geometric_area_mm2
+            .unwrap_or(std::f64::consts::PI * (0.5 * settings.threshold_mm).powi(2)),
+        min_visual_area_mm2: settings.min_visual_area_mm2,
+    };
+    let (mut regions, floors) =
+        candidate_regions(models.len(), &candidates, &pairs, &verdict_settings);
+    let compare_done = Instant::now();
+    let close_ups = match &settings.close_up {
+        Some(close_up) => look_closer(
+            &renderer,
+            &aligned,
+            &candidates,
+            &pairs,
+            &regions,
+            &views,
+            &renders,
+            threshold,
+            &verdict_settings,
+            close_up,
+        )?,
+        None => Vec::new(),
+    };
+    add_close_up_regions(
+        &mut regions,
+        &close_ups,
+        &floors,
+        &verdict_settings,
+        settings,
+    );
+    let verdict = name_defective(
+        models.len(),
+        &candidates,
+        regions,
+        &pixels,
+        settings.units_per_metre,
+    );
+    let end = Instant::now();
+    Ok(Inspection {
+        alignments,
+        views,
+        renders,
+        surfaces,
+        colour_corrections,
+        pixels,
+        pairs,
+        close_ups,
+        verdict,
+        timings: Timings {
+            align: (align_done - start).as_secs_f64(),
+            render: (render_done - align_done).as_secs_f64(),
+            compare: (compare_done - render_done).as_secs_f64(),
+            close_up: (end - compare_done).as_secs_f64(),
+            total: (end - start).as_secs_f64(),
+        },
+    })
+}
+
+/// Refuses inputs no inspection can use, naming the problem; returns the
+/// models that may be defective (all but the references).
+fn check_inputs(models: &[Splats], settings: &InspectSettings) -> Result<Vec<usize>, InspectError> {
     if models.len() < 3 {
         return Err(InspectError::Invalid(format!(
             "inspection needs at least three models (two good copies and one to check), got {}",
@@ -275,18 +378,16 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
             )));
         }
     }
-    let unit = settings.units_per_metre / 1000.0;
-    let (centre, radius) = robust_bounds(&models[0]);
-    let size_m = 2.0 * radius / settings.units_per_metre;
-    if !(0.005..=1.0).contains(&size_m) {
-        tracing::warn!(
-            "the reference model spans about {size_m:.3} m at {} units per metre: \
-             is --units-per-metre right?",
-            settings.units_per_metre
-        );
-    }
+    Ok(candidates)
+}
 
-    // Alignment of every model to the first.
+/// Every model aligned to the first (the first's own: the identity).
+fn align_all(
+    models: &[Splats],
+    settings: &InspectSettings,
+    centre: &Point3<f64>,
+    radius: f64,
+) -> Result<Vec<Alignment>, InspectError> {
     let points: Vec<PointCloud> = models
         .par_iter()
         .map(|m| model_points(m, &settings.align.filter))
@@ -299,8 +400,7 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
             )));
         }
     }
-    let views = framed_views(&models[0], &centre, radius, settings);
-    let twin_views = sphere_views(&centre, 1.15 * radius, 16, 96, 72);
+    let twin_views = sphere_views(centre, 1.15 * radius, 16, 96, 72);
     let twin_reference = render_views(&models[0], &twin_views);
     let mut alignments = vec![Alignment::identity()];
     for i in 1..models.len() {
@@ -321,28 +421,21 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
         }
         alignments.push(a);
     }
-    let align_done = Instant::now();
+    Ok(alignments)
+}
 
-    let aligned: Vec<Splats> = models
-        .iter()
-        .zip(&alignments)
-        .map(|(m, a)| {
-            if a.method == "identity" {
-                Ok(m.clone())
-            } else {
-                m.transformed(&a.transform, 1.0)
-            }
-        })
-        .collect::<Result<_, _>>()?;
-    let renderer = Renderer::new(settings.backend)?;
-    let renders: Vec<Vec<ViewRender>> = aligned
-        .iter()
-        .map(|m| render_views_on(&renderer, m, &views))
-        .collect::<Result<_, _>>()?;
-    let spacing = settings.spacing_mm * unit;
+/// Each model's visible surface from its renders, colours matched to the
+/// first model's where `photometric_radius_mm` asks.
+fn sample_surfaces(
+    renders: &[Vec<ViewRender>],
+    views: &[View],
+    spacing: f64,
+    settings: &InspectSettings,
+) -> (Vec<PointCloud>, Vec<ColourCorrection>) {
+    let unit = settings.units_per_metre / 1000.0;
     let mut surfaces: Vec<PointCloud> = renders
         .par_iter()
-        .map(|r| surface_points(r, &views, spacing))
+        .map(|r| surface_points(r, views, spacing))
         .collect();
     let mut colour_corrections = vec![ColourCorrection::identity(0)];
     let (reference_surface, others) = surfaces.split_at_mut(1);
@@ -358,20 +451,30 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
             _ => ColourCorrection::identity(k + 1),
         }
     }));
-    let render_done = Instant::now();
+    (surfaces, colour_corrections)
+}
 
-    let threshold = settings.threshold_mm * unit;
+/// Every pair of models compared both ways: pixels, and geometric and
+/// visual evidence on their surfaces.
+fn compare_all(
+    renders: &[Vec<ViewRender>],
+    surfaces: &[PointCloud],
+    views: &[View],
+    spacing: f64,
+    settings: &InspectSettings,
+) -> (Vec<PixelComparison>, Vec<PairEvidence>) {
+    let threshold = settings.threshold_mm * settings.units_per_metre / 1000.0;
     let mut pixels = Vec::new();
     let mut pairs = Vec::new();
-    for a in 0..models.len() {
-        for b in a + 1..models.len() {
+    for a in 0..renders.len() {
+        for b in a + 1..renders.len() {
             pixels.push(compare_pixels(a, b, &renders[a], &renders[b]));
             pairs.push(PairEvidence {
                 a,
                 b,
                 geometric: merge(
                     geometric_evidence(&surfaces[a], &surfaces[b], threshold),
-                    depth_evidence(&renders[a], &renders[b], &views, threshold, spacing),
+                    depth_evidence(&renders[a], &renders[b], views, threshold, spacing),
                 ),
                 visual: visual_evidence(
                     &surfaces[a],
@@ -382,35 +485,18 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
             });
         }
     }
-    let verdict_settings = VerdictSettings {
-        spacing,
-        units_per_metre: settings.units_per_metre,
-        match_radius: 3.0 * spacing,
-        min_geometric_area_mm2: settings
-            .min_geometric_area_mm2
-            .unwrap_or(std::f64::consts::PI * (0.5 * settings.threshold_mm).powi(2)),
-        min_visual_area_mm2: settings.min_visual_area_mm2,
-    };
-    let (mut regions, floors) =
-        candidate_regions(models.len(), &candidates, &pairs, &verdict_settings);
-    let compare_done = Instant::now();
-    let close_ups = match &settings.close_up {
-        Some(close_up) => look_closer(
-            &renderer,
-            &aligned,
-            &candidates,
-            &pairs,
-            &regions,
-            &views,
-            &renders,
-            threshold,
-            &verdict_settings,
-            close_up,
-        )?,
-        None => Vec::new(),
-    };
-    // What a close look found counts unless a significant region already
-    // holds it (places near one another see the same defect).
+    (pixels, pairs)
+}
+
+/// What a close look found counts unless a significant region already
+/// holds it (places near one another see the same defect).
+fn add_close_up_regions(
+    regions: &mut Vec<Region>,
+    close_ups: &[CloseUp],
+    floors: &[[f64; 2]],
+    verdict_settings: &VerdictSettings,
+    settings: &InspectSettings,
+) {
     for region in close_ups.iter().flat_map(|c| &c.regions) {
         let known = regions.iter().any(|r| {
             r.kind == Kind::Geometric
@@ -419,38 +505,8 @@ pub fn inspect(models: &[Splats], settings: &InspectSettings) -> Result<Inspecti
         });
         if region.kind == Kind::Geometric && !known {
             let mut region = region.clone();
-            apply_noise_floors(
-                std::slice::from_mut(&mut region),
-                &floors,
-                &verdict_settings,
-            );
+            apply_noise_floors(std::slice::from_mut(&mut region), floors, verdict_settings);
             regions.push(region);
         }
     }
-    let verdict = name_defective(
-        models.len(),
-        &candidates,
-        regions,
-        &pixels,
-        settings.units_per_metre,
-    );
-    let end = Instant::now();
-    Ok(Inspection {
-        alignments,
-        views,
-        renders,
-        surfaces,
-        colour_corrections,
-        pixels,
-        pairs,
-        close_ups,
-        verdict,
-        timings: Timings {
-            align: (align_done - start).as_secs_f64(),
-            render: (render_done - align_done).as_secs_f64(),
-            compare: (compare_done - render_done).as_secs_f64(),
-            close_up: (end - compare_done).as_secs_f64(),
-            total: (end - start).as_secs_f64(),
-        },
-    })
 }
