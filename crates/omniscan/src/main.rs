@@ -281,171 +281,183 @@ fn print_json(report: &impl serde::Serialize) -> Result<()> {
 fn run(cli: Cli) -> Result<()> {
     let bars = Bars::new();
     match cli.command {
-        Command::Demo { out, object, json } => {
-            let report = omniscan_pipeline::demo::demo(&object, &out, &bars)?;
-            if json {
-                print_json(&report)?;
-            } else {
-                println!(
-                    "wrote the demo to {}: twin {} ({} splats, held-out masked PSNR {:.2} dB)",
-                    out.display(),
-                    report.twin.model.display(),
-                    report.twin.splats,
-                    report.twin.test.psnr_masked.unwrap_or(f64::NAN)
-                );
-                println!(
-                    "next: omniscan twin {} --out {} for the full twin; omniscan render {} --out {}",
-                    report.capture.display(),
-                    out.join("full-twin").display(),
-                    report.twin.model.display(),
-                    out.join("renders").display()
-                );
-            }
-        }
-        Command::Sim(args) => {
-            let summary = omniscan_pipeline::simulate::simulate(&args.settings, &args.out, &bars)?;
-            if args.json {
-                print_json(&summary)?;
-            } else {
-                println!(
-                    "wrote {} ({} frames, {} empty frames) in {:.1} s",
-                    summary.capture.display(),
-                    summary.frames,
-                    summary.empty_frames,
-                    summary.seconds
-                );
-            }
-        }
-        Command::Validate { capture, json } => validate(&capture, json)?,
-        Command::Mask(args) => mask(args, &bars)?,
+        Command::Demo { out, object, json } => demo(&out, &object, json, &bars),
+        Command::Sim(args) => sim(args, &bars),
+        Command::Validate { capture, json } => validate(&capture, json),
+        Command::Mask(args) => mask(args, &bars),
         Command::ExportNerfstudio {
             capture,
             arm,
             merge,
             out,
             no_masks,
-        } => {
-            let right_to_left = merge.read(arm)?;
-            let loaded = Capture::load(&capture)?;
-            let views = arm.view_set(&loaded, right_to_left);
-            let summary = export_nerfstudio(
-                &loaded,
-                &out,
-                ExportOptions {
-                    views,
-                    masks: !no_masks,
-                },
-            )?;
-            println!(
-                "wrote {} ({} frames)",
-                summary.transforms.display(),
-                summary.frames
-            );
-        }
-        Command::Train(args) => {
-            let report =
-                omniscan_pipeline::train::train(&args.capture, &args.out, &args.settings, &bars)?;
-            if args.json {
-                print_json(&report)?;
-            } else {
-                println!(
-                    "wrote {} ({} splats) in {:.0} s; {}",
-                    args.out.display(),
-                    report.splats,
-                    report.seconds,
-                    scores(&report)
-                );
-            }
-        }
-        Command::Twin(args) => {
-            let report =
-                omniscan_pipeline::twin::twin(&args.capture, &args.out, &args.settings, &bars)?;
-            if args.json {
-                print_json(&report)?;
-            } else {
-                let twin = &report.stages.twin.report;
-                let align = &report.stages.align.report;
-                println!(
-                    "wrote {} ({} splats); {}; right onto left by {} (fitness {:.4})",
-                    report.twin.display(),
-                    twin.splats,
-                    held_out(&twin.test),
-                    align.method,
-                    align.fitness,
-                );
-            }
-        }
-        Command::Eval(args) => {
-            let report = omniscan_pipeline::evaluate::evaluate(
-                &args.model,
-                &args.capture,
-                &args.settings,
-                &bars,
-            )?;
-            if args.json {
-                print_json(&report)?;
-            } else {
-                print_evaluation(&report.evaluation);
-            }
-        }
-        Command::Render(args) => {
-            let report =
-                omniscan_pipeline::render::render(&args.model, &args.out, &args.settings, &bars)?;
-            if args.json {
-                print_json(&report)?;
-            } else {
-                println!(
-                    "wrote {} images to {}",
-                    report.images.len(),
-                    args.out.display()
-                );
-            }
-        }
-        Command::Align(args) => {
-            let report = omniscan_pipeline::align::align(
-                &args.source,
-                &args.target,
-                &args.out,
-                &args.settings,
-            )?;
-            if args.json {
-                print_json(&report)?;
-            } else {
-                println!(
-                    "{}: fitness {:.4}, inlier RMSE {:.6}, {} iterations, {:.2} s; wrote {}",
-                    report.method,
-                    report.fitness,
-                    report.inlier_rmse,
-                    report.iterations,
-                    report.seconds,
-                    args.out.display()
-                );
-            }
-        }
-        Command::Inspect(args) => inspect(args, &bars)?,
-        Command::MakeCopy(args) => {
-            let report =
-                omniscan_pipeline::inspect::make_copy(&args.model, &args.out, &args.settings)?;
-            if args.json {
-                print_json(&report)?;
-            } else {
-                let defect = match &report.defect {
-                    Some(d) => format!(
-                        "with a {} mm {} ({} splats changed)",
-                        d.size_mm, d.kind, d.affected_splats
-                    ),
-                    None => "without a defect".into(),
-                };
-                println!(
-                    "wrote {} ({} splats), a copy {defect}; --json for its pose and the defect's place",
-                    report.copy.display(),
-                    report.splats
-                );
-            }
-        }
-        Command::Plan { plan, json } => print_plan(&plan, json)?,
-        Command::Bench { which } => omniscan_bench::run(which)?,
+        } => export_nerfstudio_set(&capture, arm, &merge, &out, no_masks),
+        Command::Train(args) => train(args, &bars),
+        Command::Twin(args) => twin(args, &bars),
+        Command::Eval(args) => eval(args, &bars),
+        Command::Render(args) => render(args, &bars),
+        Command::Align(args) => align(args),
+        Command::Inspect(args) => inspect(args, &bars),
+        Command::MakeCopy(args) => make_copy(args),
+        Command::Plan { plan, json } => print_plan(&plan, json),
+        Command::Bench { which } => omniscan_bench::run(which),
     }
+}
+
+fn demo(out: &std::path::Path, object: &str, json: bool, bars: &Bars) -> Result<()> {
+    let report = omniscan_pipeline::demo::demo(object, out, bars)?;
+    if json {
+        return print_json(&report);
+    }
+    println!(
+        "wrote the demo to {}: twin {} ({} splats, held-out masked PSNR {:.2} dB)",
+        out.display(),
+        report.twin.model.display(),
+        report.twin.splats,
+        report.twin.test.psnr_masked.unwrap_or(f64::NAN)
+    );
+    println!(
+        "next: omniscan twin {} --out {} for the full twin; omniscan render {} --out {}",
+        report.capture.display(),
+        out.join("full-twin").display(),
+        report.twin.model.display(),
+        out.join("renders").display()
+    );
+    Ok(())
+}
+
+fn sim(args: SimArgs, bars: &Bars) -> Result<()> {
+    let summary = omniscan_pipeline::simulate::simulate(&args.settings, &args.out, bars)?;
+    if args.json {
+        return print_json(&summary);
+    }
+    println!(
+        "wrote {} ({} frames, {} empty frames) in {:.1} s",
+        summary.capture.display(),
+        summary.frames,
+        summary.empty_frames,
+        summary.seconds
+    );
+    Ok(())
+}
+
+fn export_nerfstudio_set(
+    capture: &std::path::Path,
+    arm: ArmSet,
+    merge: &Merge,
+    out: &std::path::Path,
+    no_masks: bool,
+) -> Result<()> {
+    let right_to_left = merge.read(arm)?;
+    let loaded = Capture::load(capture)?;
+    let views = arm.view_set(&loaded, right_to_left);
+    let summary = export_nerfstudio(
+        &loaded,
+        out,
+        ExportOptions {
+            views,
+            masks: !no_masks,
+        },
+    )?;
+    println!(
+        "wrote {} ({} frames)",
+        summary.transforms.display(),
+        summary.frames
+    );
+    Ok(())
+}
+
+fn train(args: TrainArgs, bars: &Bars) -> Result<()> {
+    let report = omniscan_pipeline::train::train(&args.capture, &args.out, &args.settings, bars)?;
+    if args.json {
+        return print_json(&report);
+    }
+    println!(
+        "wrote {} ({} splats) in {:.0} s; {}",
+        args.out.display(),
+        report.splats,
+        report.seconds,
+        scores(&report)
+    );
+    Ok(())
+}
+
+fn twin(args: TwinArgs, bars: &Bars) -> Result<()> {
+    let report = omniscan_pipeline::twin::twin(&args.capture, &args.out, &args.settings, bars)?;
+    if args.json {
+        return print_json(&report);
+    }
+    let twin = &report.stages.twin.report;
+    let align = &report.stages.align.report;
+    println!(
+        "wrote {} ({} splats); {}; right onto left by {} (fitness {:.4})",
+        report.twin.display(),
+        twin.splats,
+        held_out(&twin.test),
+        align.method,
+        align.fitness,
+    );
+    Ok(())
+}
+
+fn eval(args: EvalArgs, bars: &Bars) -> Result<()> {
+    let report =
+        omniscan_pipeline::evaluate::evaluate(&args.model, &args.capture, &args.settings, bars)?;
+    if args.json {
+        return print_json(&report);
+    }
+    print_evaluation(&report.evaluation);
+    Ok(())
+}
+
+fn render(args: RenderArgs, bars: &Bars) -> Result<()> {
+    let report = omniscan_pipeline::render::render(&args.model, &args.out, &args.settings, bars)?;
+    if args.json {
+        return print_json(&report);
+    }
+    println!(
+        "wrote {} images to {}",
+        report.images.len(),
+        args.out.display()
+    );
+    Ok(())
+}
+
+fn align(args: AlignArgs) -> Result<()> {
+    let report =
+        omniscan_pipeline::align::align(&args.source, &args.target, &args.out, &args.settings)?;
+    if args.json {
+        return print_json(&report);
+    }
+    println!(
+        "{}: fitness {:.4}, inlier RMSE {:.6}, {} iterations, {:.2} s; wrote {}",
+        report.method,
+        report.fitness,
+        report.inlier_rmse,
+        report.iterations,
+        report.seconds,
+        args.out.display()
+    );
+    Ok(())
+}
+
+fn make_copy(args: CopyArgs) -> Result<()> {
+    let report = omniscan_pipeline::inspect::make_copy(&args.model, &args.out, &args.settings)?;
+    if args.json {
+        return print_json(&report);
+    }
+    let defect = match &report.defect {
+        Some(d) => format!(
+            "with a {} mm {} ({} splats changed)",
+            d.size_mm, d.kind, d.affected_splats
+        ),
+        None => "without a defect".into(),
+    };
+    println!(
+        "wrote {} ({} splats), a copy {defect}; --json for its pose and the defect's place",
+        report.copy.display(),
+        report.splats
+    );
     Ok(())
 }
 
