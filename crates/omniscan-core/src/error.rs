@@ -37,6 +37,9 @@ fn plain_words(cause: &std::io::Error) -> String {
         ErrorKind::NotADirectory => "a part of the path is a file, not a directory".into(),
         ErrorKind::PermissionDenied => "permission denied".into(),
         ErrorKind::StorageFull => "no space left on the device".into(),
+        ErrorKind::FileTooLarge => {
+            "the file is larger than this process may write (a file-size limit)".into()
+        }
         _ => cause.to_string(),
     }
 }

@@ -2,7 +2,6 @@
 //! 16-bit depth PNGs in millimetres (0 = no measurement). Readers check the
 //! pixel format and name the file in every error.
 
-use std::io::BufWriter;
 use std::path::Path;
 
 pub use image::ColorType;
@@ -167,11 +166,8 @@ fn write_png(
     color: ExtendedColorType,
 ) -> Result<()> {
     crate::io::write_atomic_with(path, |file| {
-        let encoder = PngEncoder::new_with_quality(
-            BufWriter::new(file),
-            CompressionType::Fast,
-            FilterType::Adaptive,
-        );
+        let encoder =
+            PngEncoder::new_with_quality(file, CompressionType::Fast, FilterType::Adaptive);
         encoder
             .write_image(bytes, width, height, color)
             .map_err(std::io::Error::other)

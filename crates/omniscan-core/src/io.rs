@@ -2,7 +2,7 @@
 //! the destination directory first and is renamed into place, so an
 //! interrupted run never leaves a half-written image or JSON behind.
 
-use std::io::Write;
+use std::io::{BufWriter, Write};
 use std::path::Path;
 
 use crate::error::{CoreError, Result};
@@ -13,9 +13,12 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 }
 
 /// Writes to `path` atomically through a caller-provided writer function.
+/// The writer is buffered here, and its last flush is checked: a buffer
+/// flushed when dropped loses the error of that write, and a full disk then
+/// left a file of 0 bytes in place and reported success.
 pub fn write_atomic_with(
     path: &Path,
-    write: impl FnOnce(&mut std::fs::File) -> std::io::Result<()>,
+    write: impl FnOnce(&mut dyn Write) -> std::io::Result<()>,
 ) -> Result<()> {
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
@@ -26,8 +29,11 @@ pub fn write_atomic_with(
         .prefix(".omniscan-tmp-")
         .tempfile_in(dir)
         .map_err(|e| CoreError::io(dir, e))?;
-    write(tmp.as_file_mut()).map_err(|e| CoreError::io(path, e))?;
-    tmp.as_file_mut()
+    let mut buffered = BufWriter::new(tmp.as_file_mut());
+    write(&mut buffered).map_err(|e| CoreError::io(path, e))?;
+    buffered
+        .into_inner()
+        .map_err(|e| CoreError::io(path, e.into_error()))?
         .flush()
         .map_err(|e| CoreError::io(path, e))?;
     tmp.persist(path)

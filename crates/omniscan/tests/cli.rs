@@ -1721,4 +1721,20 @@ fn the_command_line_speaks_plainly() {
         "--json",
     ]);
     assert!(json["original_to_copy"].is_array(), "{json}");
+    // A write that fails is an error, never an empty file reported written:
+    // under a file-size limit of 0 (a full disk fails the same way, at the
+    // same last flush) the render must fail and leave no image behind.
+    let limited = tmp.path().join("limited");
+    let script = format!(
+        "trap '' XFSZ; ulimit -f 0; exec {} render {} --out {} --orbit 1 --width 32 --height 24 --backend cpu",
+        env!("CARGO_BIN_EXE_omniscan"),
+        model.display(),
+        limited.display()
+    );
+    let out = Command::new("bash").args(["-c", &script]).output().unwrap();
+    assert_refused(
+        &out,
+        "orbit_000.png: the file is larger than this process may write",
+    );
+    assert!(!limited.join("orbit_000.png").exists());
 }
