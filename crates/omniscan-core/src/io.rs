@@ -25,8 +25,16 @@ pub fn write_atomic_with(
         _ => Path::new("."),
     };
     std::fs::create_dir_all(dir).map_err(|e| CoreError::io(dir, e))?;
-    let mut tmp = tempfile::Builder::new()
-        .prefix(".omniscan-tmp-")
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(".omniscan-tmp-");
+    // A temporary file is private (0600) until it is renamed into place;
+    // an output is an ordinary file, readable as the user's umask allows.
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        builder.permissions(std::fs::Permissions::from_mode(0o666));
+    }
+    let mut tmp = builder
         .tempfile_in(dir)
         .map_err(|e| CoreError::io(dir, e))?;
     let mut buffered = BufWriter::new(tmp.as_file_mut());
@@ -68,6 +76,25 @@ pub fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Outputs take the user's umask like any file they create, not the
+    /// temporary file's private 0600.
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn outputs_are_made_as_the_umask_allows() {
+        use std::os::unix::fs::PermissionsExt;
+        let status = std::fs::read_to_string("/proc/self/status").unwrap();
+        let umask = status
+            .lines()
+            .find_map(|l| l.strip_prefix("Umask:"))
+            .map(|v| u32::from_str_radix(v.trim(), 8).unwrap())
+            .expect("Linux reports the umask");
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("out.json");
+        write_atomic(&path, b"{}").unwrap();
+        let mode = std::fs::metadata(&path).unwrap().permissions().mode() & 0o777;
+        assert_eq!(mode, 0o666 & !umask);
+    }
 
     #[test]
     fn atomic_write_replaces_and_leaves_no_temp_files() {

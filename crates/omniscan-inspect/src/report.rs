@@ -554,3 +554,38 @@ pub fn write_report(
     write_atomic(&out.join("report.html"), html.as_bytes())?;
     Ok(verdict_path)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::verdict::Kind;
+
+    #[test]
+    fn a_region_names_its_model_once() {
+        let region = Region {
+            model: 2,
+            kind: Kind::Geometric,
+            centroid: [0.0; 3],
+            extent_mm: 1.0,
+            area_mm2: 2.0,
+            points: 3,
+            mean_difference: 0.5,
+            noise_floor_mm2: 0.0,
+            significant: true,
+            standing_out: 4.0,
+            close_up: false,
+        };
+        let entry = RegionEntry {
+            model: "c.ply".into(),
+            region: &region,
+        };
+        let text = serde_json::to_string(&entry).unwrap();
+        // JSON readers keep only one of two equal keys: each must be once.
+        assert_eq!(text.matches("\"model\":").count(), 1, "{text}");
+        let value: serde_json::Value = serde_json::from_str(&text).unwrap();
+        assert_eq!(
+            (value["model"].as_str(), value["model_index"].as_u64()),
+            (Some("c.ply"), Some(2))
+        );
+    }
+}

@@ -48,6 +48,9 @@ pub enum Kind {
 /// A cluster of defect evidence on one model.
 #[derive(Debug, Clone, Serialize)]
 pub struct Region {
+    /// The model's index among those inspected (`model_index` in files,
+    /// beside the model's name).
+    #[serde(rename = "model_index")]
     pub model: usize,
     pub kind: Kind,
     /// Centre in the reference model's frame and units.

@@ -88,6 +88,14 @@ pub fn evaluate(
         0 => training,
         _ => held_out,
     };
+    if indices.is_empty() {
+        anyhow::bail!(
+            "no views to score: {} has {} views, and --held-out-every {} holds out none of them",
+            capture.display(),
+            source.len(),
+            settings.held_out_every
+        );
+    }
     let lpips =
         crate::train::load_lpips(settings.lpips.as_deref(), settings.onnx_runtime.as_deref())?;
     let renderer = Renderer::new(settings.backend)?;

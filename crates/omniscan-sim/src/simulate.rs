@@ -82,6 +82,11 @@ impl Default for SimConfig {
     }
 }
 
+/// The largest slip at handover the simulator takes: rotation, degrees,
+/// and translation, millimetres (a finger pad is about 20 mm wide).
+pub const MAX_SLIP_DEG: f64 = 45.0;
+pub const MAX_SLIP_MM: f64 = 20.0;
+
 /// The object as the simulator holds it.
 pub struct SimObject {
     pub mesh: Mesh,
@@ -287,6 +292,21 @@ impl Simulation {
                     "{name} must be a non-negative number, got {v}"
                 )));
             }
+        }
+        // A slip is the part moving in the fingers, not leaving them: past
+        // these the right arm's scan no longer sees the part at all.
+        if config.slip_deg > MAX_SLIP_DEG || config.slip_mm > MAX_SLIP_MM {
+            return Err(SimError::Invalid(format!(
+                "a slip of {}° / {} mm would move the part out of the gripper: at most {MAX_SLIP_DEG}° and {MAX_SLIP_MM} mm",
+                config.slip_deg, config.slip_mm
+            )));
+        }
+        if let Some(scale) = config.object_scale
+            && !(scale.is_finite() && scale > 0.0)
+        {
+            return Err(SimError::Invalid(format!(
+                "--object-scale must be a positive number of metres per mesh unit, got {scale}"
+            )));
         }
         let defect_spec: Option<DefectSpec> = config
             .defect

@@ -1652,6 +1652,22 @@ fn the_command_line_speaks_plainly() {
         ]),
         "did you mean the built-in object `builtin:t_connector`?",
     );
+    let out_arg = out.to_str().unwrap();
+    for (flag, message) in [
+        ("--slip-mm=1e30", "would move the part out of the gripper"),
+        (
+            "--object-scale=-1",
+            "--object-scale must be a positive number",
+        ),
+        (
+            "--object-scale=0",
+            "--object-scale must be a positive number",
+        ),
+    ] {
+        let args = ["sim", "--out", out_arg, flag];
+        assert_refused(&omniscan(&args), message);
+    }
+    assert!(!out.exists(), "a refused simulation wrote nothing");
     let capture = tmp.path().join("tiny");
     tiny_capture(&capture);
     let model = tmp.path().join("model.ply");
@@ -1730,6 +1746,17 @@ fn the_command_line_speaks_plainly() {
         env!("CARGO_BIN_EXE_omniscan"),
         model.display(),
         limited.display()
+    );
+    // Views to score or a clear refusal, never "0 views: PSNR NaN dB".
+    assert_refused(
+        &omniscan(&[
+            "eval",
+            model.to_str().unwrap(),
+            capture.to_str().unwrap(),
+            "--held-out-every",
+            "1000",
+        ]),
+        "--held-out-every 1000 holds out none of them",
     );
     let out = Command::new("bash").args(["-c", &script]).output().unwrap();
     assert_refused(
