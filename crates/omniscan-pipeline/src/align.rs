@@ -75,6 +75,9 @@ pub struct AlignSettings {
     /// Shrink the capture's images by this integer factor for --photometric (1: full size).
     #[arg(long, default_value_t = 2)]
     pub downscale: u32,
+    /// With --photometric: fit a simulated capture without masks of its own on the simulator's ground-truth masks (as `train --use-ground-truth-masks`).
+    #[arg(long)]
+    pub use_ground_truth_masks: bool,
 }
 
 default_from_flags!(AlignSettings);
@@ -165,7 +168,7 @@ pub fn align(
     let (registration, photometric) = match &settings.handover {
         Some(capture) if settings.photometric => {
             let from = registration.transformation;
-            let (refined, fit) = refine_by_images(target_path, capture, &from, settings.downscale)?;
+            let (refined, fit) = refine_by_images(target_path, capture, &from, settings)?;
             // Fitness and RMSE of the transform written, not of the points' own optimum.
             let scored = evaluate(&source, &Target::new(&target), max_distance, &refined);
             let registration = Registration {
@@ -265,7 +268,7 @@ fn refine_by_images(
     model: &Path,
     capture_path: &Path,
     right_to_left: &Pose,
-    downscale: u32,
+    settings: &AlignSettings,
 ) -> Result<(Pose, PhotometricFit)> {
     use omniscan_core::poses::{ViewSet, camera_views};
     use omniscan_splat::views::{ViewSource, split_held_out};
@@ -283,8 +286,12 @@ fn refine_by_images(
         .filter(|(_, arm)| *arm == Arm::Right)
         .map(|(i, _)| i)
         .collect();
-    let right = ViewSource::from_capture(&capture, set, downscale)
-        .and_then(|source| source.load_each(&indices))
+    let right = ViewSource::from_capture(&capture, set, settings.downscale)
+        .and_then(|source| {
+            source
+                .with_ground_truth_masks(settings.use_ground_truth_masks)
+                .load_each(&indices)
+        })
         .with_context(|| format!("--photometric: the views of {}", capture_path.display()))?;
     if right.is_empty() {
         bail!(

@@ -120,11 +120,12 @@ pub fn demo(object: &str, out: &Path, progress: &dyn Progress) -> Result<DemoRep
     progress.note(&format!(
         "6/6 training the merged splat model on both arms ({DEMO_STEPS} steps at 160x120 on the CPU; use `omniscan twin` for full quality)"
     ));
+    // The demo's own masks: ground truth is only what they are scored against.
     let twin = train_merged(
         &capture,
         right_to_left,
         &out.join("twin.ply"),
-        (DEMO_STEPS, DEMO_DOWNSCALE),
+        (DEMO_STEPS, DEMO_DOWNSCALE, false),
         progress,
     )?;
     Ok(DemoReport {
@@ -167,16 +168,22 @@ fn mask(capture_dir: &Path, progress: &dyn Progress) -> Result<DemoMasks> {
 
 /// The demo's training: the merged model on both arms' views (right frames
 /// brought into the left frame by `right_to_left`) for `steps` at
-/// `downscale`, every 8th view held out, on the CPU reference so that its
-/// figures are the same on every machine.
+/// `downscale` (frames without masks on the simulator's ground truth only
+/// with `ground_truth_masks`), every 8th view held out, on the CPU reference
+/// so that its figures are the same on every machine.
 pub fn train_merged(
     capture: &Capture,
     right_to_left: omniscan_core::Pose,
     out: &Path,
-    (steps, downscale): (usize, u32),
+    (steps, downscale, ground_truth_masks): (usize, u32, bool),
     progress: &dyn Progress,
 ) -> Result<DemoTwin> {
-    let all = views_from_capture(capture, ViewSet::Merged { right_to_left }, downscale)?;
+    let all = views_from_capture(
+        capture,
+        ViewSet::Merged { right_to_left },
+        downscale,
+        ground_truth_masks,
+    )?;
     let (train_views, test_views) = split_held_out(all, 8);
     // A robot's capture: the camera and lights stay, the object turns.
     let init = omniscan_splat::Splats {

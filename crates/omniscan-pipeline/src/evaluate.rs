@@ -76,7 +76,14 @@ pub fn evaluate(
         (omniscan_splat::ply::read_splats(model)?, None)
     };
     let right_to_left = settings.merge.read(settings.arm)?;
-    let (source, _) = view_source(capture, settings.arm, right_to_left, settings.downscale)?;
+    // Scoring is evaluation, where the simulator's ground truth belongs.
+    let (source, _) = view_source(
+        capture,
+        settings.arm,
+        right_to_left,
+        settings.downscale,
+        true,
+    )?;
     // Each compared view keeps its index in the capture, for the per-view
     // figures; only those views are read, each dropped once compared.
     let (training, held_out) = split_held_out_from(

@@ -129,7 +129,7 @@ fn cameras(
             .collect());
     };
     let right_to_left = settings.merge.read(settings.arm)?;
-    let (source, _) = crate::views::view_source(capture, settings.arm, right_to_left, 1)?;
+    let (source, _) = crate::views::view_source(capture, settings.arm, right_to_left, 1, true)?;
     let mut cameras: Vec<(String, Camera<f32>)> = (0..source.len())
         .map(|i| source.camera(i))
         .collect::<Result<_, _>>()?;

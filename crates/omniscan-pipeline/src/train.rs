@@ -123,6 +123,9 @@ pub struct TrainSettings {
     /// Where rendering and its gradients run: auto (a real GPU when there is one, else the CPU), cpu, or gpu (any device, software ones included).
     #[arg(long, default_value = "auto")]
     pub backend: Backend,
+    /// Train a simulated capture that has no masks of its own on the simulator's ground-truth masks (for experiments on training alone; the report says so). Without it a capture needs `omniscan mask` first: ground truth is for evaluation.
+    #[arg(long)]
+    pub use_ground_truth_masks: bool,
     /// Read the views even where they need more memory than the system has available (with swap, say); without it such a set is refused before reading, naming the --downscale that fits.
     #[arg(long)]
     pub no_memory_check: bool,
@@ -174,6 +177,10 @@ pub struct TrainedWith {
     pub seed: u64,
     pub init: StartedFrom,
     pub right_to_left: Option<MergedBy>,
+    /// Whether frames without masks of their own used the simulator's
+    /// ground truth (`--use-ground-truth-masks`).
+    #[serde(default)]
+    pub ground_truth_masks: bool,
 }
 
 /// What [`train`] made and how well it fits.
@@ -220,7 +227,13 @@ pub fn train(
             path.display()
         );
     }
-    let (source, view_set) = view_source(capture, settings.arm, right_to_left, settings.downscale)?;
+    let (source, view_set) = view_source(
+        capture,
+        settings.arm,
+        right_to_left,
+        settings.downscale,
+        settings.use_ground_truth_masks,
+    )?;
     if !settings.no_memory_check {
         check_view_memory(&source, settings.downscale, available_memory())?;
     }
@@ -528,6 +541,7 @@ fn trained_with(
                 None => "handover estimate T_lh⁻¹·T_rh".to_string(),
             },
         }),
+        ground_truth_masks: settings.use_ground_truth_masks,
     }
 }
 

@@ -60,6 +60,9 @@ pub struct TwinSettings {
     /// On a GPU: how much of the views' loss targets stays on the device, gigabytes (as `train`'s; it changes no result, so a finished stage is reused whatever it was).
     #[arg(long, default_value_t = omniscan_splat::gpu::training::DEFAULT_VIEW_MEMORY as f64 / 1e9)]
     pub gpu_view_memory_gb: f64,
+    /// Train and align a simulated capture that has no masks of its own on the simulator's ground-truth masks (for experiments on training alone; the reports say so). Without it a capture needs `omniscan mask` first.
+    #[arg(long)]
+    pub use_ground_truth_masks: bool,
 }
 
 default_from_flags!(TwinSettings);
@@ -249,6 +252,7 @@ pub fn twin(
         handover: Some(capture_path.to_path_buf()),
         photometric: true,
         downscale: settings.downscale,
+        use_ground_truth_masks: settings.use_ground_truth_masks,
         ..AlignSettings::default()
     };
     let align_key = stage_key(
@@ -323,6 +327,7 @@ fn train_stage(
         backend: twin.backend,
         checkpoint_every: twin.checkpoint_every,
         gpu_view_memory_gb: twin.gpu_view_memory_gb,
+        use_ground_truth_masks: twin.use_ground_truth_masks,
         appearance: AppearanceChoice::FixedRig,
         ..TrainSettings::default()
     };

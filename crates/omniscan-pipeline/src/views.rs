@@ -98,12 +98,15 @@ pub fn photo_set_file(path: &Path) -> Option<PathBuf> {
 /// The views of a capture (one arm, or both merged at the handover or by
 /// `right_to_left`) and the set they are, or of a calibrated photo set
 /// (a `transforms.json`, a directory holding one and no capture, or a
-/// `cameras.json`; no set: it has no arms), not yet read.
+/// `cameras.json`; no set: it has no arms), not yet read. A capture's
+/// frames without masks of their own use the simulator's ground truth only
+/// with `ground_truth_masks`.
 pub fn view_source(
     path: &Path,
     arm: ArmSet,
     right_to_left: Option<Pose>,
     downscale: u32,
+    ground_truth_masks: bool,
 ) -> Result<(ViewSource, Option<ViewSet>)> {
     if let Some(photo_set) = photo_set_file(path) {
         let photo_set = photo_set.as_path();
@@ -118,7 +121,8 @@ pub fn view_source(
     let capture = Capture::load(path)?;
     let set = arm.view_set(&capture, right_to_left);
     Ok((
-        ViewSource::from_capture(&capture, set, downscale)?,
+        ViewSource::from_capture(&capture, set, downscale)?
+            .with_ground_truth_masks(ground_truth_masks),
         Some(set),
     ))
 }

@@ -82,6 +82,9 @@ enum Frames {
         // Boxed: a capture's file is over 500 bytes, a photo set's list 50.
         capture: Box<omniscan_core::Capture>,
         views: Vec<omniscan_core::poses::CameraView>,
+        /// Whether a frame without masks of its own may use the
+        /// simulator's ground truth ([`ViewSource::with_ground_truth_masks`]).
+        ground_truth_masks: bool,
     },
     Photos {
         cameras_json: std::path::PathBuf,
@@ -239,9 +242,25 @@ impl ViewSource {
             frames: Frames::Capture {
                 capture: Box::new(capture.clone()),
                 views: omniscan_core::poses::camera_views(capture, set),
+                ground_truth_masks: false,
             },
             downscale: f,
         })
+    }
+
+    /// Lets frames without masks of their own use the simulator's
+    /// ground-truth masks. Ground truth is for evaluation: a model trained
+    /// on it says nothing about the masks a real capture would get, so a
+    /// capture's views use their own masks (from `omniscan mask`) unless a
+    /// caller asks for this. No effect on photo sets.
+    pub fn with_ground_truth_masks(mut self, allow: bool) -> ViewSource {
+        if let Frames::Capture {
+            ground_truth_masks, ..
+        } = &mut self.frames
+        {
+            *ground_truth_masks = allow;
+        }
+        self
     }
 
     /// The views of a calibrated photo set: a `cameras.json` with `frames`
@@ -417,7 +436,7 @@ impl ViewSource {
                 .unwrap_or_else(|| format!("view_{index:03}"))
         };
         match &self.frames {
-            Frames::Capture { capture, views } => {
+            Frames::Capture { capture, views, .. } => {
                 let view = &views[index];
                 let frame = &capture.file.frames[view.frame_index];
                 Ok((
@@ -449,7 +468,7 @@ impl ViewSource {
         let sizes: Vec<(u32, u32, bool)> = (0..self.len())
             .into_par_iter()
             .map(|i| match &self.frames {
-                Frames::Capture { capture, views } => {
+                Frames::Capture { capture, views, .. } => {
                     let k = capture.intrinsics();
                     let frame = &capture.file.frames[views[i].frame_index];
                     Ok((k.width, k.height, frame.depth_path.is_some()))
@@ -590,9 +609,11 @@ impl ViewSource {
     /// Reads view `index` (`index < len()`) packed ([`crate::packed`]).
     pub fn load_packed(&self, index: usize) -> Result<PackedView, SplatError> {
         match &self.frames {
-            Frames::Capture { capture, views } => {
-                load_capture_view(capture, &views[index], self.downscale)
-            }
+            Frames::Capture {
+                capture,
+                views,
+                ground_truth_masks,
+            } => load_capture_view(capture, &views[index], self.downscale, *ground_truth_masks),
             Frames::Photos {
                 cameras_json,
                 frames,
@@ -846,8 +867,11 @@ pub fn views_from_capture(
     capture: &omniscan_core::Capture,
     set: omniscan_core::poses::ViewSet,
     downscale: u32,
+    ground_truth_masks: bool,
 ) -> Result<Vec<View>, SplatError> {
-    ViewSource::from_capture(capture, set, downscale)?.load_all()
+    ViewSource::from_capture(capture, set, downscale)?
+        .with_ground_truth_masks(ground_truth_masks)
+        .load_all()
 }
 
 /// Training views from a calibrated photo set: [`ViewSource::from_cameras_json`],
@@ -881,10 +905,11 @@ fn load_capture_view(
     capture: &omniscan_core::Capture,
     v: &omniscan_core::poses::CameraView,
     f: u32,
+    ground_truth_masks: bool,
 ) -> Result<PackedView, SplatError> {
     use omniscan_core::image_io::{read_mask, read_rgb};
     let frame = &capture.file.frames[v.frame_index];
-    let gt = frame.gt.as_ref();
+    let gt = frame.gt.as_ref().filter(|_| ground_truth_masks);
     let object_path = frame
         .object_mask_path
         .clone()
@@ -894,9 +919,15 @@ fn load_capture_view(
         .clone()
         .or_else(|| gt.and_then(|g| g.gripper_mask_path.clone()));
     let (Some(object_path), Some(gripper_path)) = (object_path, gripper_path) else {
+        let ground_truth = if frame.gt.is_some() && !ground_truth_masks {
+            " (the simulator's ground-truth masks are for evaluation; --use-ground-truth-masks trains on them anyway)"
+        } else {
+            ""
+        };
         return Err(SplatError::Invalid(format!(
-            "{}: no object or gripper mask; run `omniscan mask` first",
-            frame.file_path
+            "{}: no object or gripper mask; run `omniscan mask {}` first{ground_truth}",
+            frame.file_path,
+            capture.dir.display()
         )));
     };
     let rgb = read_rgb(&capture.resolve(&frame.file_path))?;

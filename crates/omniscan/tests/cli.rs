@@ -162,6 +162,7 @@ fn a_nerfstudio_export_trains_and_scores_as_its_capture_does() {
     // The export's directory trains as the file would.
     let trained = omniscan_json(&[
         "train",
+        "--use-ground-truth-masks",
         ns.to_str().unwrap(),
         "--out",
         model.to_str().unwrap(),
@@ -184,6 +185,7 @@ fn a_nerfstudio_export_trains_and_scores_as_its_capture_does() {
     let from_capture_model = tmp.path().join("from_capture.ply");
     omniscan_json(&[
         "train",
+        "--use-ground-truth-masks",
         capture.to_str().unwrap(),
         "--arm",
         "left",
@@ -286,6 +288,7 @@ fn a_nerfstudio_export_trains_and_scores_as_its_capture_does() {
     std::fs::write(&transforms_path, transforms.to_string()).unwrap();
     let restarted = omniscan_json(&[
         "train",
+        "--use-ground-truth-masks",
         transforms_path.to_str().unwrap(),
         "--out",
         tmp.path().join("m2.ply").to_str().unwrap(),
@@ -581,6 +584,7 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
     let run = |steps: &str| -> serde_json::Value {
         let out = omniscan(&[
             "train",
+            "--use-ground-truth-masks",
             capture.to_str().unwrap(),
             "--arm",
             "left",
@@ -627,6 +631,7 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
     let train_more = |extra: &[&str]| {
         let mut a = vec![
             "train",
+            "--use-ground-truth-masks",
             capture.to_str().unwrap(),
             "--out",
             model.to_str().unwrap(),
@@ -708,6 +713,7 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
     // (views 0, 8, 16 held out) and an antialiased model.
     let mcmc = omniscan_json(&[
         "train",
+        "--use-ground-truth-masks",
         capture.to_str().unwrap(),
         "--out",
         model.to_str().unwrap(),
@@ -898,6 +904,7 @@ fn the_papers_merge_runs_from_the_command_line() {
     let train = |arm: &str, out: &str, steps: &str, extra: &[&str]| {
         let mut a = vec![
             "train",
+            "--use-ground-truth-masks",
             cap,
             "--arm",
             arm,
@@ -1053,7 +1060,15 @@ fn the_papers_merge_runs_from_the_command_line() {
     );
     // `--photometric` refines that transform by rendering the left model into
     // the right arm's views; it needs the capture and a splat model to render.
-    let photometric = align(&["--handover", "cap", "--photometric"], "photo.json");
+    let photometric = align(
+        &[
+            "--handover",
+            "cap",
+            "--photometric",
+            "--use-ground-truth-masks",
+        ],
+        "photo.json",
+    );
     let found = &photometric["photometric"];
     assert!(found["loss_before"].as_f64().unwrap() > 0.0, "{found}");
     assert_eq!(found["from"], from_capture["transform"], "{found}");
@@ -1153,7 +1168,15 @@ fn the_papers_merge_runs_from_the_command_line() {
         ),
     ] {
         let mut a = vec![
-            "train", cap, "--arm", arm, "--out", &scratch, "--steps", "1",
+            "train",
+            cap,
+            "--use-ground-truth-masks",
+            "--arm",
+            arm,
+            "--out",
+            &scratch,
+            "--steps",
+            "1",
         ];
         a.extend_from_slice(flags);
         assert_refused(&omniscan(&a), message);
@@ -1215,6 +1238,7 @@ fn twin_builds_the_merged_model_in_stages_and_resumes_an_interrupted_run() {
     let dir = tmp.path().join("twin");
     let args = [
         "twin",
+        "--use-ground-truth-masks",
         capture.to_str().unwrap(),
         "--out",
         dir.to_str().unwrap(),
@@ -1370,6 +1394,7 @@ fn twin_builds_the_merged_model_in_stages_and_resumes_an_interrupted_run() {
     assert_refused(
         &omniscan(&[
             "twin",
+            "--use-ground-truth-masks",
             missing.to_str().unwrap(),
             "--out",
             dir.to_str().unwrap(),
@@ -1671,8 +1696,23 @@ fn the_command_line_speaks_plainly() {
     let capture = tmp.path().join("tiny");
     tiny_capture(&capture);
     let model = tmp.path().join("model.ply");
+    // A simulated capture never masked is not trained on the simulator's
+    // ground truth unless asked: its figures would say nothing of masking.
+    assert_refused(
+        &omniscan(&[
+            "train",
+            capture.to_str().unwrap(),
+            "--out",
+            model.to_str().unwrap(),
+            "--steps",
+            "1",
+        ]),
+        "run `omniscan mask",
+    );
+    assert!(!model.exists());
     let trained = omniscan(&[
         "train",
+        "--use-ground-truth-masks",
         capture.to_str().unwrap(),
         "--out",
         model.to_str().unwrap(),
