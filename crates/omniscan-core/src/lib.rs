@@ -10,6 +10,7 @@ pub mod geometry;
 pub mod image_io;
 pub mod io;
 pub mod lens;
+pub mod lock;
 pub mod nerfstudio;
 pub mod plan;
 pub mod ply;

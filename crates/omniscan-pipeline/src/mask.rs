@@ -208,6 +208,7 @@ pub fn mask(
     progress: &dyn Progress,
 ) -> Result<MaskReport> {
     let mut capture = Capture::load_unchecked(capture_path)?;
+    let _lock = omniscan_core::lock::OutputLock::folder(&capture.dir, "mask")?;
     // The frames' masks are what this stage makes: ones capture.json names
     // but that are gone (deleted to make them again) are made again, where
     // validating them first refused to run.

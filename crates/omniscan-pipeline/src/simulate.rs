@@ -133,6 +133,7 @@ pub fn simulate_config(
     progress: &dyn Progress,
 ) -> Result<SimSummary> {
     let sim = Simulation::new(config).context("cannot set up the simulation")?;
+    let _lock = omniscan_core::lock::OutputLock::folder(out, "sim")?;
     progress.start("simulating", sim.frames.len() as u64, "frames");
     let summary = sim
         .run(out, &|done, _| progress.set(done as u64))

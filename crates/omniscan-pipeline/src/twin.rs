@@ -224,7 +224,7 @@ pub fn twin(
 ) -> Result<TwinReport> {
     let capture = omniscan_core::Capture::load(capture_path)?;
     let capture_file = capture.resolve(omniscan_core::capture::CAPTURE_FILE);
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let _lock = omniscan_core::lock::OutputLock::folder(out, "twin")?;
     let (left, right) = (out.join("left.ply"), out.join("right.ply"));
     let transform = out.join("right_to_left.json");
     let twin = out.join("twin.ply");

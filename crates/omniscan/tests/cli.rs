@@ -1272,6 +1272,15 @@ fn twin_builds_the_merged_model_in_stages_and_resumes_an_interrupted_run() {
         );
         std::thread::sleep(std::time::Duration::from_millis(20));
     }
+    // While it runs, a second twin on the same folder is refused at once,
+    // naming the first, rather than mixing their stages.
+    let second = omniscan(&args);
+    assert_refused(&second, "is in use by omniscan twin (process ");
+    assert!(
+        String::from_utf8_lossy(&second.stderr).contains(&child.id().to_string()),
+        "{}",
+        String::from_utf8_lossy(&second.stderr)
+    );
     child.kill().unwrap();
     child.wait().unwrap();
     assert!(
