@@ -476,6 +476,53 @@ fn mask_paths(frame: &Frame) -> (String, String) {
     )
 }
 
+/// What a capture's masks were made from: the settings, and a digest of
+/// the capture's inputs (see [`input_digest`]). A mask is kept from an
+/// earlier run only under the same record.
+#[derive(Debug, PartialEq, Serialize, Deserialize)]
+struct MaskRecord {
+    settings: MaskSettings,
+    inputs: String,
+}
+
+/// A digest of everything masking reads: the capture file (the masks'
+/// own paths left out, since masking writes them; numbers to 12 digits,
+/// see [`omniscan_core::digest::stable_json`]) and the bytes of every
+/// frame's and empty frame's image and depth map. An edited image or depth
+/// map, or a moved pose, makes every mask again.
+fn input_digest(capture: &Capture) -> Result<String> {
+    let mut file = capture.file.clone();
+    for frame in &mut file.frames {
+        frame.object_mask_path = None;
+        frame.gripper_mask_path = None;
+    }
+    let mut digest = omniscan_core::digest::Digest::default();
+    let json = serde_json::to_value(&file).expect("a capture serialises");
+    digest.add(
+        omniscan_core::digest::stable_json(json)
+            .to_string()
+            .as_bytes(),
+    );
+    for frame in file.frames.iter().chain(&file.empty_frames) {
+        for rel in std::iter::once(&frame.file_path).chain(&frame.depth_path) {
+            let path = capture.resolve(rel);
+            let bytes = std::fs::read(&path).map_err(|e| omniscan_core::CoreError::io(&path, e))?;
+            digest.add(&(bytes.len() as u64).to_le_bytes());
+            digest.add(&bytes);
+        }
+    }
+    Ok(digest.hex())
+}
+
+/// Whether every mask at `paths` is there and decodes to the camera's size
+/// (an output cut short or emptied is made again, not kept).
+fn decodes_at(paths: &[&Path], capture: &Capture) -> bool {
+    let k = capture.intrinsics();
+    paths
+        .iter()
+        .all(|p| image_io::read_mask(p).is_ok_and(|m| (m.width, m.height) == (k.width, k.height)))
+}
+
 /// Masks every frame of `capture`, writes the PNGs and records their paths in
 /// `capture.json`. `progress(done, total)` is called after each frame.
 pub fn mask_capture(
@@ -489,13 +536,13 @@ pub fn mask_capture(
         .and_then(|_| std::fs::create_dir_all(dir.join("gripper")))
         .map_err(|e| omniscan_core::CoreError::io(&dir, e))?;
     let marker = dir.join(SETTINGS_FILE);
-    let settings_json = serde_json::to_value(&masker.settings).expect("settings serialise");
-    let same_settings = marker.is_file()
-        && omniscan_core::io::read_json::<MaskSettings>(&marker)
-            .ok()
-            .as_ref()
-            == Some(&masker.settings);
-    omniscan_core::io::write_json_atomic(&marker, &settings_json)?;
+    let record = MaskRecord {
+        settings: masker.settings.clone(),
+        inputs: input_digest(capture)?,
+    };
+    let previous = omniscan_core::io::read_json::<MaskRecord>(&marker);
+    let same_inputs = previous.ok().as_ref() == Some(&record);
+    omniscan_core::io::write_json_atomic(&marker, &record)?;
 
     let total = capture.file.frames.len();
     let done = AtomicUsize::new(0);
@@ -506,7 +553,7 @@ pub fn mask_capture(
             let (object_rel, gripper_rel) = &paths[i];
             let (object_path, gripper_path) =
                 (capture.resolve(object_rel), capture.resolve(gripper_rel));
-            let result = if same_settings && object_path.is_file() && gripper_path.is_file() {
+            let result = if same_inputs && decodes_at(&[&object_path, &gripper_path], capture) {
                 Ok(None)
             } else {
                 mask_frame(masker, capture, i).and_then(|m| {

@@ -79,6 +79,20 @@ fn masks_match_ground_truth_are_recorded_and_resume() {
     let other = Masker::new(&again, None, settings).unwrap();
     let summary = mask_capture(&mut again, &other, &|_, _| {}).unwrap();
     assert_eq!(summary.computed, 24);
+    let summary = mask_capture(&mut again, &other, &|_, _| {}).unwrap();
+    assert_eq!((summary.computed, summary.resumed), (0, 24));
+    // A mask emptied (a run on a full disk) is made again, not kept.
+    let first_mask = dir.join(again.file.frames[0].object_mask_path.as_deref().unwrap());
+    std::fs::write(&first_mask, b"").unwrap();
+    let summary = mask_capture(&mut again, &other, &|_, _| {}).unwrap();
+    assert_eq!((summary.computed, summary.resumed), (1, 23));
+    // An edited image makes the masks again: they were made from it.
+    let image = dir.join(&again.file.frames[3].file_path);
+    let mut rgb = omniscan_core::image_io::read_rgb(&image).unwrap();
+    rgb.data.iter_mut().for_each(|v| *v = v.saturating_add(40));
+    omniscan_core::image_io::write_rgb(&image, &rgb).unwrap();
+    let summary = mask_capture(&mut again, &other, &|_, _| {}).unwrap();
+    assert_eq!(summary.computed, 24);
 }
 
 #[test]
