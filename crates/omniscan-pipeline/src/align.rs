@@ -82,20 +82,12 @@ pub struct AlignSettings {
 
 default_from_flags!(AlignSettings);
 
-/// What the photometric refinement found.
+/// What the photometric refinement found, and the point registration's
+/// transform it started from (4x4 row-major).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PhotometricFit {
-    /// The offset's angle, degrees, and distance, the model's units (metres for captures).
-    pub offset_deg: f64,
-    pub offset_m: f64,
-    /// Mean loss (colour and silhouette) over the views at the start and at the offset found.
-    pub loss_before: f64,
-    pub loss_after: f64,
-    /// Whether the offset lowered the loss (otherwise the points' transform is kept).
-    pub accepted: bool,
-    pub views: usize,
-    pub steps: usize,
-    /// The point registration's transform it started from, 4x4 row-major.
+    #[serde(flatten)]
+    pub found: omniscan_splat::offset::OffsetRefinement,
     pub from: [[f64; 4]; 4],
 }
 
@@ -305,18 +297,13 @@ fn refine_by_images(
         &omniscan_splat::offset::OffsetConfig::default(),
     )
     .context("--photometric")?;
+    let offset = found.offset;
     let fit = PhotometricFit {
-        offset_deg: found.offset_deg,
-        offset_m: found.offset_m,
-        loss_before: found.loss_before,
-        loss_after: found.loss_after,
-        accepted: found.accepted,
-        views: found.views,
-        steps: found.steps,
+        found,
         from: pose_to_rows(right_to_left),
     };
     // The views saw the model through V·R2L⁻¹·D: the right-to-left transform is D⁻¹·R2L.
-    Ok((found.offset.inverse() * right_to_left, fit))
+    Ok((offset.inverse() * right_to_left, fit))
 }
 
 /// One candidate of the paper's merge rule and its error against the truth.

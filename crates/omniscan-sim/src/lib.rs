@@ -22,18 +22,11 @@ pub enum SimError {
     Mesh { path: PathBuf, message: String },
     #[error(transparent)]
     Core(#[from] omniscan_core::CoreError),
+    /// A mesh, its file or the gripper model (`omniscan-scene`).
+    #[error(transparent)]
+    Scene(#[from] omniscan_scene::SceneError),
     #[error("{0}")]
     Invalid(String),
-}
-
-impl From<omniscan_scene::SceneError> for SimError {
-    fn from(e: omniscan_scene::SceneError) -> Self {
-        match e {
-            omniscan_scene::SceneError::Mesh { path, message } => SimError::Mesh { path, message },
-            omniscan_scene::SceneError::Core(e) => SimError::Core(e),
-            omniscan_scene::SceneError::Invalid(m) => SimError::Invalid(m),
-        }
-    }
 }
 
 impl SimError {

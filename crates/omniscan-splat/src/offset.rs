@@ -48,7 +48,7 @@ use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::Real;
 use crate::backward::backward;
@@ -88,12 +88,12 @@ impl Default for OffsetConfig {
 }
 
 /// What [`refine_offset`] found.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct OffsetRefinement {
     /// The motion D of the model's frame to put before each view's camera
     /// (a view's world-to-camera matrix V becomes V·D); the identity when
     /// the refinement did not lower the loss.
-    #[serde(skip)]
+    #[serde(skip, default = "Pose::identity")]
     pub offset: Pose,
     /// The offset's angle (degrees) and distance (the model's units, metres for captures).
     pub offset_deg: f64,
