@@ -18,10 +18,14 @@ pub struct OutputLock {
 }
 
 impl OutputLock {
-    /// Locks the folder `dir` (created if missing) for `command`.
+    /// Locks the folder `dir` (created if missing) for `command`, and
+    /// removes the temporary files a killed run left in it and its
+    /// subfolders ([`remove_stale_temporaries`]).
     pub fn folder(dir: &Path, command: &str) -> Result<OutputLock> {
         std::fs::create_dir_all(dir).map_err(|e| CoreError::io(dir, e))?;
-        Self::at(&dir.join(".omniscan.lock"), dir, command)
+        let lock = Self::at(&dir.join(".omniscan.lock"), dir, command)?;
+        remove_stale_temporaries(dir, std::time::Duration::from_secs(60))?;
+        Ok(lock)
     }
 
     /// Locks the output file `out` for `command` (`OUT.lock` beside it).
@@ -78,9 +82,72 @@ impl OutputLock {
     }
 }
 
+/// Removes the temporary files of atomic writes (`.omniscan-tmp-*`) under
+/// `dir` not written to for `age`: a run killed mid-write leaves its
+/// temporary file behind. Called with the folder's lock held, so no other
+/// omniscan stage of that folder is writing; a file written to within `age`
+/// is left, in case a lone `train` writes beside it. Returns how many went.
+pub fn remove_stale_temporaries(dir: &Path, age: std::time::Duration) -> Result<usize> {
+    let mut removed = 0;
+    let entries = std::fs::read_dir(dir).map_err(|e| CoreError::io(dir, e))?;
+    for entry in entries {
+        let entry = entry.map_err(|e| CoreError::io(dir, e))?;
+        let path = entry.path();
+        let kind = entry.file_type().map_err(|e| CoreError::io(&path, e))?;
+        if kind.is_dir() {
+            removed += remove_stale_temporaries(&path, age)?;
+            continue;
+        }
+        let temporary = entry
+            .file_name()
+            .to_string_lossy()
+            .starts_with(".omniscan-tmp-");
+        let stale = entry
+            .metadata()
+            .and_then(|m| m.modified())
+            .ok()
+            .and_then(|t| t.elapsed().ok())
+            .is_some_and(|elapsed| elapsed >= age);
+        if kind.is_file() && temporary && stale {
+            std::fs::remove_file(&path).map_err(|e| CoreError::io(&path, e))?;
+            removed += 1;
+        }
+    }
+    Ok(removed)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_killed_runs_temporary_files_go_when_the_folder_is_locked_again() {
+        let dir = tempfile::tempdir().unwrap();
+        let images = dir.path().join("images");
+        std::fs::create_dir_all(&images).unwrap();
+        let stale = images.join(".omniscan-tmp-killed");
+        let fresh = dir.path().join(".omniscan-tmp-writing");
+        let kept = images.join("left_000.png");
+        for file in [&stale, &fresh, &kept] {
+            std::fs::write(file, b"x").unwrap();
+        }
+        let old = std::time::SystemTime::now() - std::time::Duration::from_secs(3600);
+        for file in [&stale, &kept] {
+            std::fs::File::options()
+                .write(true)
+                .open(file)
+                .unwrap()
+                .set_modified(old)
+                .unwrap();
+        }
+        let _lock = OutputLock::folder(dir.path(), "sim").unwrap();
+        assert!(!stale.exists());
+        assert!(
+            fresh.exists(),
+            "a file written to just now may be another writer's"
+        );
+        assert!(kept.exists());
+    }
 
     #[test]
     fn a_second_holder_is_refused_naming_the_first_until_it_lets_go() {
