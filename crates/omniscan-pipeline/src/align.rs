@@ -146,7 +146,15 @@ pub fn align(
         }
         (None, None) => Pose::identity(),
     };
-    let max_distance = settings.max_distance.unwrap_or(target.extent() / 50.0);
+    let extent = target.extent();
+    if settings.max_distance.is_none() && !(extent.is_finite() && extent > 0.0) {
+        bail!(
+            "{}: its {} point(s) span no distance, from which the correspondence distance is chosen: give --max-distance",
+            target_path.display(),
+            target.len()
+        );
+    }
+    let max_distance = settings.max_distance.unwrap_or(extent / 50.0);
     if max_distance.is_nan() || max_distance <= 0.0 || max_distance.is_infinite() {
         bail!("--max-distance must be positive (units of the clouds), got {max_distance}");
     }
@@ -390,4 +398,30 @@ pub fn merge_scans(capture: &omniscan_core::Capture) -> Result<MergeReport> {
         handover_error: error(&init),
         refined_error: error(&best.registration.transformation),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A target with no extent has no default correspondence distance: the
+    /// refusal names the file and the flag to give, not a flag never passed
+    /// "got 0".
+    #[test]
+    fn a_target_without_extent_asks_for_a_correspondence_distance() {
+        let dir = tempfile::tempdir().unwrap();
+        let (source, target) = (dir.path().join("s.xyz"), dir.path().join("t.xyz"));
+        std::fs::write(&source, "0 0 0\n0.01 0 0\n0 0.01 0\n").unwrap();
+        std::fs::write(&target, "0 0 0\n").unwrap();
+        let out = dir.path().join("t.json");
+        let err = align(&source, &target, &out, &AlignSettings::default())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("t.xyz: its 1 point(s) span no distance"),
+            "{err}"
+        );
+        assert!(err.contains("give --max-distance"), "{err}");
+        assert!(!out.exists());
+    }
 }

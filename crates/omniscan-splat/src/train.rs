@@ -876,6 +876,30 @@ mod tests {
         moved[0].camera.viewmat[0][3] += 1e-6;
         let err = refusal(&moved, &config);
         assert!(err.contains("other settings or views"), "{err}");
+        // A checkpoint whose state no run could have reached is refused,
+        // not resumed into another model.
+        let resume = |state: TrainState| {
+            train_resumable(
+                &views,
+                Start::Resume(Box::new(state)),
+                &config,
+                &Renderer::Cpu,
+                None,
+                &mut |_, _, _| {},
+            )
+            .unwrap_err()
+            .to_string()
+        };
+        for extent in [0.0, -1.0, f32::NAN] {
+            let err = resume(TrainState {
+                extent,
+                ..state.clone()
+            });
+            assert!(err.contains("scene extent"), "{err}");
+        }
+        let mut huge = state.clone();
+        huge.moments[1].1[0] = f32::INFINITY;
+        assert!(resume(huge).contains("Adam moments"));
     }
 
     /// The cap on the count holds from the first step: a start above it, or

@@ -148,6 +148,20 @@ impl<'a, V: TrainingView> Trainer<'a, V> {
             )));
         }
         state.splats.validate()?;
+        // The extent scales the position rate: a checkpoint's must be one
+        // a fresh start could have measured.
+        if !(state.extent.is_finite() && state.extent >= 1e-3) {
+            return Err(SplatError::Invalid(format!(
+                "the checkpoint's scene extent is {}, where training measures at least 0.001",
+                state.extent
+            )));
+        }
+        let finite = |v: &Vec<f32>| v.iter().all(|x| x.is_finite());
+        if !state.moments.iter().all(|(m, v)| finite(m) && finite(v)) {
+            return Err(SplatError::Invalid(
+                "the checkpoint's Adam moments are not all finite numbers".into(),
+            ));
+        }
         if state.order.iter().any(|&i| i >= self.views.len()) {
             return Err(SplatError::Invalid(
                 "the checkpoint's view order names views that do not exist".into(),
