@@ -188,7 +188,7 @@ fn twin(
             match omniscan_pipeline::simulate::simulate_config(
                 config,
                 &capture_dir,
-                &crate::Bar::new(),
+                &omniscan_pipeline::Bars::new(),
             ) {
                 Ok(_) => break,
                 Err(e) if attempt + 1 < attempts && !capture_dir.exists() => {
@@ -210,7 +210,7 @@ fn twin(
             // The benchmark measures inspection, not masking: its twins
             // train on the simulator's masks, and say so.
             (args.steps, args.downscale, true),
-            &crate::Bar::new(),
+            &omniscan_pipeline::Bars::new(),
         )
         .with_context(|| format!("training {}", model.display()))?;
     }

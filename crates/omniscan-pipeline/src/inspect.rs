@@ -352,10 +352,7 @@ pub fn make_copy(model: &Path, out: &Path, settings: &MakeCopySettings) -> Resul
         defect: defect.map(|d| {
             let c = pose * Point3::from(d.centre);
             PlantedDefect {
-                kind: serde_json::to_value(d.kind)
-                    .ok()
-                    .and_then(|v| v.as_str().map(String::from))
-                    .unwrap_or_default(),
+                kind: d.kind.name().into(),
                 size_mm: d.size_mm,
                 centre_in_copy: [c.x, c.y, c.z],
                 affected_splats: d.affected_splats,

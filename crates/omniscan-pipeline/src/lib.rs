@@ -48,4 +48,4 @@ pub mod train;
 pub mod twin;
 pub mod views;
 
-pub use progress::{Progress, Silent};
+pub use progress::{Bars, Progress, Silent};

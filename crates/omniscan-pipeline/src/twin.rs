@@ -183,11 +183,11 @@ fn stage<R: Serialize + serde::de::DeserializeOwned>(
     ));
     let report = run(resume)?;
     let done = Record {
-        key: key.into(),
+        key: key.to_string(),
         output: Some(
             file_digest(output).with_context(|| format!("reading {} back", output.display()))?,
         ),
-        report: Some(report),
+        report: Some(&report),
     };
     omniscan_core::io::write_json_atomic(&record, &done)?;
     Ok(Stage {
@@ -196,7 +196,7 @@ fn stage<R: Serialize + serde::de::DeserializeOwned>(
         } else {
             StageStatus::Ran
         },
-        report: done.report.expect("just set"),
+        report,
     })
 }
 

@@ -20,7 +20,7 @@ use crate::backward::backward_binned;
 use crate::gpu::training::{DeviceState, HostState, LossTarget, StepRates, ViewTargets};
 use crate::raster::{bin_tiles, project, rasterize_binned};
 use crate::sh::coefficients;
-use crate::strategy::{Refinement, Strategy};
+use crate::strategy::{Refinement, Strategy, moment_strides};
 use crate::train::{
     LOG_SCALES_LR, OPACITIES_LR, QUATS_LR, SH_DC_LR, Start, StepLoss, TrainConfig, TrainState,
     step_loss,
@@ -133,7 +133,7 @@ impl<'a, V: TrainingView> Trainer<'a, V> {
         self.strategy.prepare(&mut s);
         self.extent = extent(&s);
         let (n, k) = (s.len(), s.sh_coefficients());
-        self.adam = [n * 3, n * 3, n * 4, n, n * k * 3].map(Adam::new);
+        self.adam = moment_strides(k).map(|stride| Adam::new(n * stride));
         self.grad2d_sum = vec![0.0; n];
         self.grad2d_count = vec![0; n];
         self.splats = s;

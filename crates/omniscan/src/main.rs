@@ -3,7 +3,6 @@
 //! default is written once, in the library; the command prints one summary
 //! line, or the stage's whole report with `--json`.
 
-mod bars;
 mod gripper;
 
 use std::path::PathBuf;
@@ -24,7 +23,7 @@ use omniscan_pipeline::train::TrainSettings;
 use omniscan_pipeline::twin::TwinSettings;
 use omniscan_pipeline::views::{ArmSet, Merge};
 
-use bars::Bars;
+use omniscan_pipeline::progress::Bars;
 
 /// mimalloc instead of the system allocator: a training step frees and
 /// takes back hundreds of megabytes of image-sized buffers (SSIM's blurs,
