@@ -74,13 +74,25 @@ impl Intrinsics {
                 ));
             }
         }
-        for (name, v) in [("cx", self.cx), ("cy", self.cy)] {
-            if !v.is_finite() {
-                return Err(format!("camera {name} is not finite ({v})"));
-            }
-        }
-        Ok(())
+        check_principal_point(self.cx, self.cy, self.width, self.height)
+            .map_err(|e| format!("camera {e}"))
     }
+}
+
+/// A principal point (`cx`, `cy`, pixels) a `width`x`height` image can
+/// have: finite, and no further outside the image than its own size. A
+/// cropped image's centre may lie outside it; one 4·10⁹ pixels away is a
+/// damaged file, and its projections overflowed into NaN figures.
+pub fn check_principal_point(cx: f64, cy: f64, width: u32, height: u32) -> Result<(), String> {
+    for (name, v, size) in [("cx", cx, width), ("cy", cy, height)] {
+        let size = f64::from(size);
+        if !(v.is_finite() && (-size..=2.0 * size).contains(&v)) {
+            return Err(format!(
+                "{name} = {v} pixels is not within the {size}-pixel image or its own size beyond it"
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// Converts an OpenCV camera-to-world pose (x right, y down, z forward) to the

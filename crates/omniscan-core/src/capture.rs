@@ -130,6 +130,30 @@ pub struct Frame {
     pub gt: Option<FrameGroundTruth>,
 }
 
+impl Frame {
+    /// Every file the frame names, with its key in `capture.json`.
+    pub fn named_paths(&self) -> impl Iterator<Item = (&'static str, &str)> {
+        let gt = self.gt.as_ref();
+        [
+            ("file_path", Some(&self.file_path)),
+            ("depth_path", self.depth_path.as_ref()),
+            ("object_mask_path", self.object_mask_path.as_ref()),
+            ("gripper_mask_path", self.gripper_mask_path.as_ref()),
+            (
+                "gt.object_mask_path",
+                gt.and_then(|g| g.object_mask_path.as_ref()),
+            ),
+            (
+                "gt.gripper_mask_path",
+                gt.and_then(|g| g.gripper_mask_path.as_ref()),
+            ),
+            ("gt.depth_path", gt.and_then(|g| g.depth_path.as_ref())),
+        ]
+        .into_iter()
+        .filter_map(|(key, path)| path.map(|p| (key, p.as_str())))
+    }
+}
+
 /// Capture-level ground truth recorded by the simulator.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CaptureGroundTruth {
@@ -298,6 +322,11 @@ impl Capture {
                 if frame.file_path.trim().is_empty() {
                     problems.push(format!("{list}[{i}].file_path is empty"));
                 }
+                for (key, rel) in frame.named_paths() {
+                    if let Err(e) = crate::paths::confine(&self.dir, rel) {
+                        problems.push(format!("{list}[{i}].{key}: {e}"));
+                    }
+                }
                 if let Some(o) = frame.gripper_opening_m
                     && !(o.is_finite() && o >= 0.0)
                 {
@@ -310,55 +339,38 @@ impl Capture {
         problems
     }
 
-    /// Checks every image the capture names: present, decodable, of the
-    /// camera's size, of the right pixel format. Runs in parallel.
+    /// Checks every image the capture names: present, its header readable,
+    /// of the camera's size, of the right pixel format. Runs in parallel.
     pub fn validate(&self) -> Result<()> {
+        self.check_images(false)
+    }
+
+    /// [`validate`](Self::validate), and every image decoded to its last
+    /// pixel as well (`omniscan validate`): a truncated or damaged PNG is
+    /// found here rather than by the stage that reads it.
+    pub fn validate_pixels(&self) -> Result<()> {
+        self.check_images(true)
+    }
+
+    fn check_images(&self, decode: bool) -> Result<()> {
         // (key, path, format, what to say when the file is missing)
-        let mut checks: Vec<(String, String, ImageKind, &str)> = Vec::new();
+        let mut checks: Vec<(String, &str, ImageKind, &str)> = Vec::new();
         for (list, frames) in [
             ("frames", &self.file.frames),
             ("empty_frames", &self.file.empty_frames),
         ] {
             for (i, frame) in frames.iter().enumerate() {
-                let at = |key: &str| format!("{list}[{i}].{key}");
-                checks.push((at("file_path"), frame.file_path.clone(), ImageKind::Rgb, ""));
-                // A frame's own masks are `omniscan mask`'s output.
-                let remade = " (`omniscan mask` makes it again)";
-                let optional = [
-                    ("depth_path", &frame.depth_path, ImageKind::Depth, ""),
-                    (
-                        "object_mask_path",
-                        &frame.object_mask_path,
-                        ImageKind::Mask,
-                        remade,
-                    ),
-                    (
-                        "gripper_mask_path",
-                        &frame.gripper_mask_path,
-                        ImageKind::Mask,
-                        remade,
-                    ),
-                ];
-                for (key, path, kind, missing) in optional {
-                    if let Some(p) = path {
-                        checks.push((at(key), p.clone(), kind, missing));
-                    }
-                }
-                if let Some(gt) = &frame.gt {
-                    let gt_files = [
-                        ("gt.object_mask_path", &gt.object_mask_path, ImageKind::Mask),
-                        (
-                            "gt.gripper_mask_path",
-                            &gt.gripper_mask_path,
-                            ImageKind::Mask,
-                        ),
-                        ("gt.depth_path", &gt.depth_path, ImageKind::Depth),
-                    ];
-                    for (key, path, kind) in gt_files {
-                        if let Some(p) = path {
-                            checks.push((at(key), p.clone(), kind, ""));
+                for (key, rel) in frame.named_paths() {
+                    let (kind, missing) = match key {
+                        "file_path" => (ImageKind::Rgb, ""),
+                        "depth_path" | "gt.depth_path" => (ImageKind::Depth, ""),
+                        // A frame's own masks are `omniscan mask`'s output.
+                        "object_mask_path" | "gripper_mask_path" => {
+                            (ImageKind::Mask, " (`omniscan mask` makes it again)")
                         }
-                    }
+                        _ => (ImageKind::Mask, ""),
+                    };
+                    checks.push((format!("{list}[{i}].{key}"), rel, kind, missing));
                 }
             }
         }
@@ -369,7 +381,8 @@ impl Capture {
         let mut problems: Vec<String> = checks
             .par_iter()
             .filter_map(|(at, rel, kind, missing)| {
-                self.check_image(at, rel, *kind, missing, w, h).err()
+                self.check_image(at, rel, *kind, missing, (w, h), decode)
+                    .err()
             })
             .collect();
         problems.sort();
@@ -389,8 +402,8 @@ impl Capture {
         rel: &str,
         kind: ImageKind,
         missing: &str,
-        w: u32,
-        h: u32,
+        (w, h): (u32, u32),
+        decode: bool,
     ) -> std::result::Result<(), String> {
         let path = self.resolve(rel);
         if !path.is_file() {
@@ -419,6 +432,9 @@ impl Capture {
                 "{at}: {} must be {want}, found {color:?}",
                 path.display()
             ));
+        }
+        if decode {
+            crate::image_io::check_decodes(&path).map_err(|e| format!("{at}: {e}"))?;
         }
         Ok(())
     }

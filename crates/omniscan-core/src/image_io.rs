@@ -75,6 +75,12 @@ pub fn probe(path: &Path) -> Result<(u32, u32, ColorType)> {
     Ok((w, h, decoder.color_type()))
 }
 
+/// Decodes the whole image and drops it: what a header [`probe`] cannot
+/// tell, a truncated file or a damaged chunk (PNG's CRCs are checked).
+pub fn check_decodes(path: &Path) -> Result<()> {
+    open(path).map(drop)
+}
+
 fn open(path: &Path) -> Result<image::DynamicImage> {
     ImageReader::open(path)
         .map_err(|e| CoreError::io(path, e))?

@@ -12,6 +12,7 @@ pub mod io;
 pub mod lens;
 pub mod lock;
 pub mod nerfstudio;
+pub mod paths;
 pub mod plan;
 pub mod ply;
 pub mod poses;

@@ -64,14 +64,20 @@ pub struct ExportSummary {
     pub masks: bool,
 }
 
-fn link_or_copy(from: &Path, to: &Path) -> Result<()> {
+/// Hard-links `from` (the file itself, its links followed) into the export
+/// when it lies inside the capture's folder, and copies it otherwise: an
+/// export must not share an inode with a file outside the capture, which
+/// `--allow-outside-paths` may have let in.
+fn link_or_copy(capture_dir: &Path, from: &Path, to: &Path) -> Result<()> {
     if let Some(parent) = to.parent() {
         std::fs::create_dir_all(parent).map_err(|e| CoreError::io(parent, e))?;
     }
     if to.exists() {
         std::fs::remove_file(to).map_err(|e| CoreError::io(to, e))?;
     }
-    if std::fs::hard_link(from, to).is_ok() {
+    let real = from.canonicalize().map_err(|e| CoreError::io(from, e))?;
+    let inside = crate::paths::canonical_folder(capture_dir).is_ok_and(|dir| real.starts_with(dir));
+    if inside && std::fs::hard_link(&real, to).is_ok() {
         return Ok(());
     }
     let bytes = std::fs::read(from).map_err(|e| CoreError::io(from, e))?;
@@ -105,7 +111,11 @@ pub fn export_nerfstudio(
         let frame = &capture.file.frames[view.frame_index];
         let name = format!("{:04}_{}", n, frame.arm);
         let image = format!("images/{name}.{}", extension(&frame.file_path));
-        link_or_copy(&capture.resolve(&frame.file_path), &out.join(&image))?;
+        link_or_copy(
+            &capture.dir,
+            &capture.resolve(&frame.file_path),
+            &out.join(&image),
+        )?;
         let mask_path = if options.masks {
             let source = frame
                 .object_mask_path
@@ -118,7 +128,7 @@ pub fn export_nerfstudio(
                     ))
                 })?;
             let mask = format!("masks/{name}.png");
-            link_or_copy(&capture.resolve(source), &out.join(&mask))?;
+            link_or_copy(&capture.dir, &capture.resolve(source), &out.join(&mask))?;
             Some(mask)
         } else {
             None
@@ -130,7 +140,7 @@ pub fn export_nerfstudio(
         let gripper_mask_path = match gripper_source {
             Some(source) if options.masks => {
                 let mask = format!("grippers/{name}.png");
-                link_or_copy(&capture.resolve(source), &out.join(&mask))?;
+                link_or_copy(&capture.dir, &capture.resolve(source), &out.join(&mask))?;
                 Some(mask)
             }
             _ => None,
@@ -138,7 +148,7 @@ pub fn export_nerfstudio(
         let depth_file_path = match &frame.depth_path {
             Some(d) => {
                 let depth = format!("depth/{name}.png");
-                link_or_copy(&capture.resolve(d), &out.join(&depth))?;
+                link_or_copy(&capture.dir, &capture.resolve(d), &out.join(&depth))?;
                 Some(depth)
             }
             None => None,

@@ -214,15 +214,37 @@ pub fn parse(bytes: &[u8]) -> std::result::Result<PlyFile, String> {
     }
     let format = format.ok_or("PLY header has no format line")?;
     let body = &bytes[body_start..];
-    match format {
+    let used = match format {
         Format::Ascii => read_ascii(body, &mut elements)?,
         _ => read_binary(body, &mut elements, format == Format::BinaryBigEndian)?,
-    }
+    };
+    check_nothing_after(&body[used..], &elements)?;
     Ok(PlyFile {
         format,
         comments,
         elements,
     })
+}
+
+/// The body must end where the header's elements do: bytes left over mean
+/// a count was lowered or a property line lost, and reading on as if
+/// nothing were wrong dropped splats or shifted every column into the
+/// next. A final line break (or an ASCII body's trailing spaces) is
+/// allowed, as writers add one.
+fn check_nothing_after(rest: &[u8], elements: &[Element]) -> std::result::Result<(), String> {
+    let line_break = rest.len() <= 2 && rest.iter().all(|b| matches!(b, b'\n' | b'\r'));
+    if line_break {
+        return Ok(());
+    }
+    let counts = elements
+        .iter()
+        .map(|e| format!("{} {}", e.name, e.count))
+        .collect::<Vec<_>>()
+        .join(", ");
+    Err(format!(
+        "{} bytes follow the last element: the header's elements ({counts}) and their properties do not describe the whole file",
+        rest.len()
+    ))
 }
 
 /// Columns for `e`'s items, with room reserved for as many as a body of
@@ -246,7 +268,9 @@ fn items_to_read(e: &Element) -> usize {
     if e.properties.is_empty() { 0 } else { e.count }
 }
 
-fn read_ascii(body: &[u8], elements: &mut [Element]) -> std::result::Result<(), String> {
+/// Reads the elements from an ASCII body; returns how many of its bytes
+/// they took (trailing whitespace included).
+fn read_ascii(body: &[u8], elements: &mut [Element]) -> std::result::Result<usize, String> {
     let text = std::str::from_utf8(body).map_err(|_| "ASCII PLY body is not text")?;
     let mut tokens = text.split_ascii_whitespace();
     for e in elements.iter_mut() {
@@ -284,7 +308,11 @@ fn read_ascii(body: &[u8], elements: &mut [Element]) -> std::result::Result<(), 
         }
         e.columns = columns;
     }
-    Ok(())
+    Ok(match tokens.next() {
+        // Where the first token left over starts.
+        Some(t) => t.as_ptr() as usize - text.as_ptr() as usize,
+        None => body.len(),
+    })
 }
 
 fn read_scalar(bytes: &[u8], t: ScalarType, big: bool) -> f64 {
@@ -311,11 +339,13 @@ fn read_scalar(bytes: &[u8], t: ScalarType, big: bool) -> f64 {
     }
 }
 
+/// Reads the elements from a binary body; returns how many of its bytes
+/// they took.
 fn read_binary(
     body: &[u8],
     elements: &mut [Element],
     big: bool,
-) -> std::result::Result<(), String> {
+) -> std::result::Result<usize, String> {
     let mut at = 0usize;
     for e in elements.iter_mut() {
         let mut columns = empty_columns(e, body.len());
@@ -371,7 +401,7 @@ fn read_binary(
         }
         e.columns = columns;
     }
-    Ok(())
+    Ok(at)
 }
 
 /// Serialises scalar-only elements (plus optional list columns) as binary little-endian PLY.
@@ -513,6 +543,45 @@ mod tests {
         );
         assert!(parse(b"hello").is_err());
         assert!(parse(b"ply\nformat weird 1.0\nend_header\n").is_err());
+    }
+
+    /// A lowered count or a lost property line leaves bytes the header does
+    /// not describe; they are an error, not splats silently dropped or
+    /// columns shifted. A final line break is not.
+    #[test]
+    fn bytes_the_header_does_not_describe_are_errors() {
+        let bytes = to_binary_le(&sample());
+        let end = bytes.windows(10).position(|w| w == b"end_header").unwrap();
+        let header = std::str::from_utf8(&bytes[..end]).unwrap();
+        for (what, damaged) in [
+            (
+                "lowered count",
+                header.replacen("element vertex 3", "element vertex 2", 1),
+            ),
+            (
+                "lost property",
+                header.replacen("property float y\n", "", 1),
+            ),
+        ] {
+            let file = [damaged.as_bytes(), &bytes[end..]].concat();
+            let message = parse(&file).unwrap_err();
+            assert!(
+                message.contains("follow the last element"),
+                "{what}: {message}"
+            );
+        }
+        let mut with_newline = bytes.clone();
+        with_newline.push(b'\n');
+        assert_eq!(parse(&with_newline).unwrap(), sample());
+        let ascii = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1\n2\n";
+        assert!(
+            parse(ascii.as_bytes())
+                .unwrap_err()
+                .contains("follow the last element")
+        );
+        let ascii =
+            "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nend_header\n1\n2\n\n  \n";
+        assert!(parse(ascii.as_bytes()).is_ok());
     }
 
     /// A damaged count must not be taken at its word: reserving room for

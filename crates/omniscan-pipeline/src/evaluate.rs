@@ -109,21 +109,24 @@ pub fn evaluate(
     if renderer.is_gpu() {
         progress.note(&format!("rendering on {}", renderer.describe()));
     }
+    let at_once = eval_memory_check(&source, &indices, settings.downscale, &renderer)?;
     progress.start("evaluating", indices.len() as u64, "views");
-    let mut evaluation = omniscan_splat::evaluation::evaluate_views(
-        &model,
-        &renderer,
-        indices.len(),
-        |i| source.load(indices[i]).map(std::borrow::Cow::Owned),
-        lpips.as_ref(),
-        |i, v, rgb| {
-            progress.advance();
-            match &settings.renders {
-                Some(dir) => Ok(write_pair(dir, i, v, rgb)?),
-                None => Ok(()),
-            }
-        },
-    )?;
+    let mut evaluation = crate::memory::with_threads(at_once, || {
+        omniscan_splat::evaluation::evaluate_views(
+            &model,
+            &renderer,
+            indices.len(),
+            |i| source.load(indices[i]).map(std::borrow::Cow::Owned),
+            lpips.as_ref(),
+            |i, v, rgb| {
+                progress.advance();
+                match &settings.renders {
+                    Some(dir) => Ok(write_pair(dir, i, v, rgb)?),
+                    None => Ok(()),
+                }
+            },
+        )
+    })??;
     progress.finish();
     for (figures, index) in evaluation.per_view.iter_mut().zip(indices) {
         figures.view = index;
@@ -132,6 +135,48 @@ pub fn evaluate(
         evaluation,
         checkpoint_step,
     })
+}
+
+/// How many views may be scored at once in the memory available, or an
+/// error naming the --downscale at which the largest fits.
+fn eval_memory_check(
+    source: &omniscan_splat::views::ViewSource,
+    indices: &[usize],
+    downscale: u32,
+    renderer: &Renderer,
+) -> Result<usize> {
+    use crate::memory::{EVAL_BYTES_PER_PIXEL, READ_BYTES_PER_PIXEL};
+    let mut largest = (0, 0);
+    for &i in indices {
+        let (_, c) = source.camera(i)?;
+        if u64::from(c.width) * u64::from(c.height) > largest.0 * largest.1 {
+            largest = (u64::from(c.width), u64::from(c.height));
+        }
+    }
+    let d = u64::from(downscale.max(1));
+    let full = largest.0 * largest.1 * d * d;
+    let need = |d: u64| full * READ_BYTES_PER_PIXEL + full / (d * d) * EVAL_BYTES_PER_PIXEL;
+    let wanted = if renderer.is_gpu() {
+        1
+    } else {
+        rayon::current_num_threads()
+    };
+    crate::memory::views_at_once(
+        &format!(
+            "scoring a {}x{} view (read at {}x{})",
+            largest.0,
+            largest.1,
+            largest.0 * d,
+            largest.1 * d
+        ),
+        need(d),
+        wanted,
+        crate::memory::available(),
+        |available| match (d..=16 * d).find(|&d| need(d) <= available) {
+            Some(fits) => format!("--downscale {fits} fits"),
+            None => "its images are too large to read on this machine at any --downscale".into(),
+        },
+    )
 }
 
 /// The photo's object pixels beside the render, as `view_NNN.png`.

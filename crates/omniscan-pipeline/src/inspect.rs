@@ -131,6 +131,24 @@ impl InspectionSettings {
     }
 }
 
+/// How many views may be compared at once in the memory available (each
+/// holds a render of every model), or an error naming a size that fits.
+fn inspect_memory_check(settings: &InspectSettings, models: usize) -> Result<usize> {
+    use crate::memory::{RENDER_BYTES_PER_PIXEL, side_that_fits};
+    let (w, h) = (settings.width, settings.height);
+    let per_pixel = RENDER_BYTES_PER_PIXEL * models as u64;
+    crate::memory::views_at_once(
+        &format!("comparing {models} models' {w}x{h} renders of a view"),
+        u64::from(w) * u64::from(h) * per_pixel,
+        rayon::current_num_threads(),
+        crate::memory::available(),
+        |available| {
+            let (fw, fh) = side_that_fits(w, h, per_pixel, available);
+            format!("--width {fw} --height {fh} fits")
+        },
+    )
+}
+
 fn reference_indices(names: &[String], models: &[PathBuf]) -> Result<Vec<usize>> {
     names
         .iter()
@@ -223,8 +241,10 @@ pub fn inspect(
         .iter()
         .map(|p| read_splats(p).with_context(|| format!("reading model {}", p.display())))
         .collect::<Result<_>>()?;
+    let at_once = inspect_memory_check(&resolved, splats.len())?;
     progress.start("aligning, rendering and comparing the models", 0, "");
-    let result = omniscan_inspect::inspect(&splats, &resolved);
+    let result =
+        crate::memory::with_threads(at_once, || omniscan_inspect::inspect(&splats, &resolved))?;
     progress.finish();
     let inspection = result.map_err(|e| match e {
         omniscan_inspect::InspectError::Alignment {

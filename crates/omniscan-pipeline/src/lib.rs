@@ -40,6 +40,7 @@ pub mod demo;
 pub mod evaluate;
 pub mod inspect;
 pub mod mask;
+pub mod memory;
 pub mod progress;
 pub mod render;
 pub mod settings;

@@ -19,6 +19,9 @@ use crate::views::{ArmSet, Merge};
 /// The largest image side rendered on request (turntables, `bench splat`), pixels.
 pub const MAX_SIDE: u32 = 16384;
 
+/// The most turntable views rendered on request: one every 0.1°.
+pub const MAX_ORBIT: usize = 3600;
+
 /// Everything `render` can be told besides the model and output folder.
 #[derive(clap::Args, Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
@@ -94,11 +97,18 @@ pub fn render(
         progress.advance();
         Ok(())
     };
-    // One device serves views one at a time; the CPU renders them in parallel.
+    // One device serves views one at a time; the CPU renders them in
+    // parallel, as many at once as memory holds.
+    let at_once = render_memory_check(
+        &cameras,
+        &renderer,
+        settings.capture.is_some(),
+        crate::memory::available(),
+    )?;
     if renderer.is_gpu() {
         cameras.iter().try_for_each(one)?;
     } else {
-        cameras.par_iter().try_for_each(one)?;
+        crate::memory::with_threads(at_once, || cameras.par_iter().try_for_each(one))??;
     }
     progress.finish();
     Ok(RenderReport {
@@ -107,14 +117,57 @@ pub fn render(
     })
 }
 
+/// How many views may be rendered at once in the memory available, or an
+/// error naming a size that fits when not even the largest alone does.
+fn render_memory_check(
+    cameras: &[(String, Camera<f32>)],
+    renderer: &Renderer,
+    from_capture: bool,
+    available: Option<u64>,
+) -> Result<usize> {
+    use crate::memory::{RENDER_BYTES_PER_PIXEL, side_that_fits};
+    let Some(largest) = cameras
+        .iter()
+        .map(|(_, c)| c)
+        .max_by_key(|c| c.width as u64 * c.height as u64)
+    else {
+        return Ok(1);
+    };
+    let (w, h) = (largest.width, largest.height);
+    let wanted = if renderer.is_gpu() {
+        1
+    } else {
+        rayon::current_num_threads()
+    };
+    crate::memory::views_at_once(
+        &format!("rendering a {w}x{h} view"),
+        u64::from(w) * u64::from(h) * RENDER_BYTES_PER_PIXEL,
+        wanted,
+        available,
+        |available| {
+            let (fw, fh) = side_that_fits(w, h, RENDER_BYTES_PER_PIXEL, available);
+            if from_capture {
+                format!(
+                    "the cameras' images are too large for this machine (about {fw}x{fh} would fit)"
+                )
+            } else {
+                format!("--width {fw} --height {fh} fits")
+            }
+        },
+    )
+}
+
 /// The named cameras to render: the capture's (or photo set's), or a turntable.
 fn cameras(
     splats: &omniscan_splat::Splats,
     settings: &RenderSettings,
 ) -> Result<Vec<(String, Camera<f32>)>> {
     let Some(capture) = &settings.capture else {
-        if settings.orbit == 0 {
-            bail!("--orbit must be at least 1 view");
+        if !(1..=MAX_ORBIT).contains(&settings.orbit) {
+            bail!(
+                "--orbit must be 1 to {MAX_ORBIT} views, got {}",
+                settings.orbit
+            );
         }
         // A mistyped size (10⁶ x 10⁶) rendered for minutes, then failed.
         let (w, h) = (settings.width, settings.height);
@@ -146,6 +199,42 @@ fn cameras(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A 16384² render needs about 26 GB: with 8 GB it is refused naming a
+    /// size that fits, and with 60 GB two such views run at once.
+    #[test]
+    fn renders_that_do_not_fit_in_memory_are_refused_or_run_fewer_at_once() {
+        let splats = omniscan_splat::Splats {
+            means: vec![[0.0; 3]],
+            log_scales: vec![[-3.0; 3]],
+            quats: vec![[1.0, 0.0, 0.0, 0.0]],
+            opacity_logits: vec![0.0],
+            sh: vec![[0.5; 3]],
+            ..Default::default()
+        };
+        let settings = RenderSettings {
+            width: MAX_SIDE,
+            height: MAX_SIDE,
+            ..RenderSettings::default()
+        };
+        let cameras = cameras(&splats, &settings).unwrap();
+        let gb = 1_000_000_000;
+        let error = render_memory_check(&cameras, &Renderer::Cpu, false, Some(8 * gb))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.starts_with("rendering a 16384x16384 view needs about 25.77 GB"),
+            "{error}"
+        );
+        let (w, h): (u32, u32) = (9128, 9128);
+        assert!(
+            error.ends_with(&format!("--width {w} --height {h} fits")),
+            "{error}"
+        );
+        assert!(u64::from(w * h) * crate::memory::RENDER_BYTES_PER_PIXEL <= 8 * gb);
+        let at_once = render_memory_check(&cameras, &Renderer::Cpu, false, Some(60 * gb)).unwrap();
+        assert_eq!(at_once, 2.min(rayon::current_num_threads()));
+    }
 
     #[test]
     fn defaults_parse() {

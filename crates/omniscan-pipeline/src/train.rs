@@ -236,7 +236,7 @@ pub fn train(
         settings.use_ground_truth_masks,
     )?;
     if !settings.no_memory_check {
-        check_view_memory(&source, settings.downscale, available_memory())?;
+        check_view_memory(&source, settings.downscale, crate::memory::available())?;
     }
     progress.start("reading", source.len() as u64, "views");
     let all = source.load_packed_each(&(0..source.len()).collect::<Vec<_>>(), &|| {
@@ -560,7 +560,7 @@ fn check_view_memory(source: &ViewSource, downscale: u32, available: Option<u64>
     if needs[0] <= available {
         return Ok(());
     }
-    let gb = |bytes: u64| bytes as f64 / 1e9;
+    let gb = crate::memory::gb;
     // A downscale that leaves no pixel "fits" too, and is no answer.
     let fits = match downscales
         .iter()
@@ -579,15 +579,6 @@ fn check_view_memory(source: &ViewSource, downscale: u32, available: Option<u64>
         gb(needs[0]),
         gb(available)
     )
-}
-
-/// The memory the system can give without swapping, where it says
-/// (Linux's /proc/meminfo).
-fn available_memory() -> Option<u64> {
-    let meminfo = std::fs::read_to_string("/proc/meminfo").ok()?;
-    let line = meminfo.lines().find(|l| l.starts_with("MemAvailable:"))?;
-    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kib * 1024)
 }
 
 /// The LPIPS network at `path`, if one is named.

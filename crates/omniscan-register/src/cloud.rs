@@ -467,14 +467,57 @@ fn lzf_decompress(input: &[u8], out_len: usize) -> Result<Vec<u8>, String> {
     Ok(out)
 }
 
-fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
-    let bytes = std::fs::read(path).map_err(|e| RegisterError::file(path, e.to_string()))?;
-    let err = |m: String| RegisterError::file(path, m);
-    let mut fields: Vec<String> = vec![];
-    let mut sizes: Vec<usize> = vec![];
-    let mut types: Vec<char> = vec![];
-    let mut counts: Vec<usize> = vec![];
-    let mut points = None;
+/// A PCD header (PCL's format, v0.7): the fields, their layout, and where
+/// the body starts.
+struct PcdHeader {
+    fields: Vec<String>,
+    sizes: Vec<usize>,
+    types: Vec<char>,
+    counts: Vec<usize>,
+    /// POINTS.
+    n: usize,
+    /// `ascii`, `binary` or `binary_compressed`.
+    data_kind: String,
+    /// The first byte after the DATA line.
+    body_start: usize,
+}
+
+impl PcdHeader {
+    /// Bytes per point in a binary body.
+    fn stride(&self) -> Option<usize> {
+        self.sizes
+            .iter()
+            .zip(&self.counts)
+            .try_fold(0usize, |s, (&a, &c)| a.checked_mul(c)?.checked_add(s))
+    }
+
+    /// Values per point: one per (field, element).
+    fn width(&self) -> usize {
+        self.counts.iter().sum()
+    }
+
+    /// Where each field's first value sits among a point's values.
+    fn offsets(&self) -> Vec<usize> {
+        self.counts
+            .iter()
+            .scan(0, |s, c| {
+                let o = *s;
+                *s += c;
+                Some(o)
+            })
+            .collect()
+    }
+}
+
+/// Reads and checks a PCD header: every per-field line the same length,
+/// no field of size or count 0, types PCL writes (F 4/8, I and U 1/2/4),
+/// and POINTS = WIDTH × HEIGHT (HEIGHT 1 for an unorganised cloud, never 0).
+fn read_pcd_header(
+    bytes: &[u8],
+    err: &dyn Fn(String) -> RegisterError,
+) -> Result<PcdHeader, RegisterError> {
+    let (mut fields, mut sizes, mut types, mut counts) = (vec![], vec![], vec![], vec![]);
+    let (mut points, mut width, mut height) = (None, None, None);
     let mut at = 0;
     let data_kind = loop {
         let end = bytes[at..]
@@ -493,10 +536,17 @@ fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
         let nums = |rest: &[String]| -> Result<Vec<usize>, RegisterError> {
             rest.iter()
                 .map(|w| {
-                    w.parse::<usize>()
-                        .map_err(|_| err(format!("bad number `{w}` in `{line}`")))
+                    w.parse::<usize>().map_err(|_| {
+                        err(format!("bad number `{w}` in `{line}` (a count, 0 or more)"))
+                    })
                 })
                 .collect()
+        };
+        let one = |rest: &[String]| -> Result<usize, RegisterError> {
+            match nums(rest)?.as_slice() {
+                [v] => Ok(*v),
+                _ => Err(err(format!("`{line}` must hold one number"))),
+            }
         };
         match key.as_str() {
             "FIELDS" => fields = rest,
@@ -508,18 +558,26 @@ fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
                     .collect()
             }
             "COUNT" => counts = nums(&rest)?,
-            "POINTS" => {
-                points = Some(
-                    *nums(&rest)?
-                        .first()
-                        .ok_or_else(|| err("POINTS without a number".into()))?,
-                )
-            }
+            "WIDTH" => width = Some(one(&rest)?),
+            "HEIGHT" => height = Some(one(&rest)?),
+            "POINTS" => points = Some(one(&rest)?),
             "DATA" => break rest.first().cloned().unwrap_or_default(),
             _ => {}
         }
     };
     let n = points.ok_or_else(|| err("PCD header has no POINTS line".into()))?;
+    if height == Some(0) {
+        return Err(err(
+            "PCD header: HEIGHT 0 (an unorganised cloud has HEIGHT 1)".into(),
+        ));
+    }
+    if let (Some(w), Some(h)) = (width, height)
+        && w.checked_mul(h) != Some(n)
+    {
+        return Err(err(format!(
+            "PCD header: POINTS {n} is not WIDTH {w} × HEIGHT {h}"
+        )));
+    }
     if counts.is_empty() {
         counts = vec![1; fields.len()];
     }
@@ -531,57 +589,97 @@ fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
     if sizes.contains(&0) || counts.contains(&0) {
         return Err(err("PCD header: a field of SIZE or COUNT 0".into()));
     }
-    // Bytes per point (binary) and values per point, checked: the header's
-    // numbers come from the file.
+    for ((field, &t), &size) in fields.iter().zip(&types).zip(&sizes) {
+        if !matches!((t, size), ('F', 4 | 8) | ('I' | 'U', 1 | 2 | 4)) {
+            return Err(err(format!(
+                "PCD header: field `{field}` has TYPE {t} SIZE {size}, which no reader decodes (F 4 or 8, I or U 1, 2 or 4)"
+            )));
+        }
+    }
+    Ok(PcdHeader {
+        fields,
+        sizes,
+        types,
+        counts,
+        n,
+        data_kind,
+        body_start: at,
+    })
+}
+
+fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
+    let bytes = std::fs::read(path).map_err(|e| RegisterError::file(path, e.to_string()))?;
+    let err = |m: String| RegisterError::file(path, m);
+    let header = read_pcd_header(&bytes, &err)?;
+    let values = read_pcd_body(&header, &bytes[header.body_start..], &err)?;
+    let (width, offsets, fields) = (header.width(), header.offsets(), &header.fields);
+    let col = |name: &str| fields.iter().position(|f| f == name).map(|f| offsets[f]);
+    let (Some(x), Some(y), Some(z)) = (col("x"), col("y"), col("z")) else {
+        return Err(err("PCD needs x, y and z fields".into()));
+    };
+    let mut cloud = PointCloud::default();
+    // Organised clouds mark missing points with NaN: skip them.
+    for r in values.chunks_exact(width) {
+        if ![r[x], r[y], r[z]].iter().all(|v| v.is_finite()) {
+            continue;
+        }
+        cloud.points.push(Point3::new(r[x], r[y], r[z]));
+        if let Some(c) = col("rgb").or(col("rgba")) {
+            let packed = r[c] as u32;
+            cloud.colors.push(
+                [(packed >> 16) & 255, (packed >> 8) & 255, packed & 255].map(|v| v as f32 / 255.0),
+            );
+        }
+        if let (Some(a), Some(b), Some(c)) = (col("normal_x"), col("normal_y"), col("normal_z")) {
+            cloud.normals.push(Vector3::new(r[a], r[b], r[c]));
+        }
+    }
+    Ok(cloud)
+}
+
+/// Decodes a PCD body into `POINTS × width` values, point-major, and
+/// checks that it holds exactly what the header says (a final line break
+/// aside): a lowered POINTS must not drop the rest silently.
+fn read_pcd_body(
+    h: &PcdHeader,
+    body: &[u8],
+    err: &dyn Fn(String) -> RegisterError,
+) -> Result<Vec<f64>, RegisterError> {
+    let n = h.n;
     let overflow = || err("PCD header: SIZE, COUNT or POINTS too large".into());
-    let stride = sizes
-        .iter()
-        .zip(&counts)
-        .try_fold(0usize, |s, (&a, &c)| a.checked_mul(c)?.checked_add(s))
-        .ok_or_else(overflow)?;
-    // One value per (field, element); columns in field order.
-    let width: usize = counts.iter().sum();
-    let body = &bytes[at..];
+    let stride = h.stride().ok_or_else(overflow)?;
+    let width = h.width();
     // What the body can hold bounds the header's point count before
     // anything is allocated for it (a damaged POINTS line asked for
     // terabytes). Binary points take `stride` bytes each (every value at
     // least one); an ASCII value at least a digit and a separator; LZF
     // expands at most 264 bytes out of every 3 in.
     let needed = n.checked_mul(stride).ok_or_else(overflow)?;
-    let holds = match data_kind.as_str() {
+    let holds = match h.data_kind.as_str() {
         "ascii" => body.len() / 2 + 1 >= n.saturating_mul(width),
         "binary" => body.len() >= needed,
         _ => body.len().saturating_mul(88) >= needed,
     };
     if !holds {
         return Err(err(format!(
-            "file is truncated: {} bytes of {data_kind} data cannot hold the {n} points its header gives",
-            body.len()
+            "file is truncated: {} bytes of {} data cannot hold the {n} points its header gives",
+            body.len(),
+            h.data_kind
         )));
     }
-    let mut values = vec![0f64; n * width];
-    let offsets: Vec<usize> = counts
-        .iter()
-        .scan(0, |s, c| {
-            let o = *s;
-            *s += c;
-            Some(o)
-        })
-        .collect();
-    let decode = |b: &[u8], t: char, size: usize| -> f64 {
-        match (t, size) {
-            ('F', 4) => f32::from_le_bytes(b[..4].try_into().unwrap()) as f64,
-            ('F', 8) => f64::from_le_bytes(b[..8].try_into().unwrap()),
-            ('U', 1) => b[0] as f64,
-            ('I', 1) => b[0] as i8 as f64,
-            ('U', 2) => u16::from_le_bytes(b[..2].try_into().unwrap()) as f64,
-            ('I', 2) => i16::from_le_bytes(b[..2].try_into().unwrap()) as f64,
-            ('U', 4) => u32::from_le_bytes(b[..4].try_into().unwrap()) as f64,
-            ('I', 4) => i32::from_le_bytes(b[..4].try_into().unwrap()) as f64,
-            _ => f64::NAN,
+    let left_over = |rest: &[u8]| -> Result<(), RegisterError> {
+        if rest.len() <= 2 && rest.iter().all(|b| matches!(b, b'\n' | b'\r')) {
+            return Ok(());
         }
+        Err(err(format!(
+            "{} bytes follow the {n} points the header gives (is POINTS right?)",
+            rest.len()
+        )))
     };
-    match data_kind.as_str() {
+    let mut values = vec![0f64; n * width];
+    let offsets = h.offsets();
+    let (fields, types, sizes, counts) = (&h.fields, &h.types, &h.sizes, &h.counts);
+    match h.data_kind.as_str() {
         "ascii" => {
             let text =
                 std::str::from_utf8(body).map_err(|_| err("ASCII PCD body is not text".into()))?;
@@ -595,6 +693,11 @@ fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
                 })?;
                 *v = t.parse().map_err(|_| err(format!("bad number `{t}`")))?;
             }
+            if let Some(t) = tokens.next() {
+                return Err(err(format!(
+                    "values follow the {n} points the header gives (from `{t}` on; is POINTS right?)"
+                )));
+            }
             // Packed rgb in ASCII files is the float reinterpretation of the integer.
             if let Some(f) = fields.iter().position(|f| f == "rgb" || f == "rgba")
                 && types[f] == 'F'
@@ -606,12 +709,13 @@ fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
             }
         }
         "binary" => {
+            left_over(&body[needed..])?;
             for i in 0..n {
                 let mut o = i * stride;
                 for f in 0..fields.len() {
                     for c in 0..counts[f] {
                         values[i * width + offsets[f] + c] =
-                            raw_or_value(&body[o..], types[f], sizes[f], &fields[f], &decode);
+                            raw_or_value(&body[o..], types[f], sizes[f], &fields[f]);
                         o += sizes[f];
                     }
                 }
@@ -631,6 +735,7 @@ fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
             let data = body
                 .get(8..8 + compressed)
                 .ok_or_else(|| err("compressed PCD body is truncated".into()))?;
+            left_over(&body[8 + compressed..])?;
             let data = lzf_decompress(data, raw).map_err(err)?;
             // Column-major: all of field 0, then all of field 1...
             let mut o = 0;
@@ -641,7 +746,7 @@ fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
                             .get(o..o + sizes[f])
                             .ok_or_else(|| err("decompressed data too short".into()))?;
                         values[i * width + offsets[f] + c] =
-                            raw_or_value(b, types[f], sizes[f], &fields[f], &decode);
+                            raw_or_value(b, types[f], sizes[f], &fields[f]);
                         o += sizes[f];
                     }
                 }
@@ -649,43 +754,30 @@ fn read_pcd(path: &Path) -> Result<PointCloud, RegisterError> {
         }
         other => return Err(err(format!("unknown PCD DATA kind `{other}`"))),
     }
-    let col = |name: &str| fields.iter().position(|f| f == name).map(|f| offsets[f]);
-    let (Some(x), Some(y), Some(z)) = (col("x"), col("y"), col("z")) else {
-        return Err(err("PCD needs x, y and z fields".into()));
-    };
-    let mut cloud = PointCloud::default();
-    // Organised clouds mark missing points with NaN: skip them.
-    for i in 0..n {
-        let r = &values[i * width..(i + 1) * width];
-        if ![r[x], r[y], r[z]].iter().all(|v| v.is_finite()) {
-            continue;
-        }
-        cloud.points.push(Point3::new(r[x], r[y], r[z]));
-        if let Some(c) = col("rgb").or(col("rgba")) {
-            let packed = r[c] as u32;
-            cloud.colors.push(
-                [(packed >> 16) & 255, (packed >> 8) & 255, packed & 255].map(|v| v as f32 / 255.0),
-            );
-        }
-        if let (Some(a), Some(b), Some(c)) = (col("normal_x"), col("normal_y"), col("normal_z")) {
-            cloud.normals.push(Vector3::new(r[a], r[b], r[c]));
-        }
+    Ok(values)
+}
+
+/// One binary value of a type the header check allows.
+fn decode_pcd_value(b: &[u8], t: char, size: usize) -> f64 {
+    match (t, size) {
+        ('F', 4) => f32::from_le_bytes(b[..4].try_into().unwrap()) as f64,
+        ('F', 8) => f64::from_le_bytes(b[..8].try_into().unwrap()),
+        ('U', 1) => b[0] as f64,
+        ('I', 1) => b[0] as i8 as f64,
+        ('U', 2) => u16::from_le_bytes(b[..2].try_into().unwrap()) as f64,
+        ('I', 2) => i16::from_le_bytes(b[..2].try_into().unwrap()) as f64,
+        ('U', 4) => u32::from_le_bytes(b[..4].try_into().unwrap()) as f64,
+        ('I', 4) => i32::from_le_bytes(b[..4].try_into().unwrap()) as f64,
+        _ => unreachable!("read_pcd_header refuses TYPE {t} SIZE {size}"),
     }
-    Ok(cloud)
 }
 
 /// Packed colour fields keep their bit pattern (as an integer); others decode.
-fn raw_or_value(
-    b: &[u8],
-    t: char,
-    size: usize,
-    field: &str,
-    decode: &dyn Fn(&[u8], char, usize) -> f64,
-) -> f64 {
+fn raw_or_value(b: &[u8], t: char, size: usize, field: &str) -> f64 {
     if (field == "rgb" || field == "rgba") && size == 4 {
         u32::from_le_bytes(b[..4].try_into().unwrap()) as f64
     } else {
-        decode(b, t, size)
+        decode_pcd_value(b, t, size)
     }
 }
 
@@ -805,6 +897,7 @@ mod tests {
             ),
         ] {
             let mut file = header(kind)
+                .replace("WIDTH 2", "WIDTH 1562500000000")
                 .replace("POINTS 2", "POINTS 1562500000000")
                 .into_bytes();
             file.extend_from_slice(body);
@@ -823,6 +916,36 @@ mod tests {
             file.extend_from_slice(&bin[header("binary").len()..]);
             std::fs::write(dir.path().join("s.pcd"), &file).unwrap();
             assert!(read_cloud(&dir.path().join("s.pcd")).is_err(), "{to}");
+        }
+        // A lowered POINTS (and WIDTH with it) leaves points unread: an
+        // error, not a shorter cloud.
+        for (kind, file) in [("ascii", ascii.as_bytes()), ("binary", &bin[..])] {
+            let body = &file[header(kind).len()..];
+            let mut lowered = header(kind)
+                .replace("WIDTH 2", "WIDTH 1")
+                .replace("POINTS 2", "POINTS 1")
+                .into_bytes();
+            lowered.extend_from_slice(body);
+            std::fs::write(dir.path().join("l.pcd"), &lowered).unwrap();
+            let message = read_cloud(&dir.path().join("l.pcd"))
+                .unwrap_err()
+                .to_string();
+            assert!(message.contains("follow the 1 points"), "{kind}: {message}");
+        }
+        // Header lines that contradict each other or name no decodable type.
+        for (from, to, says) in [
+            ("POINTS 2", "POINTS 1", "is not WIDTH 2 × HEIGHT 1"),
+            ("HEIGHT 1", "HEIGHT 0", "HEIGHT 0"),
+            ("HEIGHT 1", "HEIGHT -1", "bad number `-1`"),
+            ("SIZE 4 4 4 4", "SIZE 2 4 4 4", "TYPE F SIZE 2"),
+        ] {
+            let mut file = header("binary").replace(from, to).into_bytes();
+            file.extend_from_slice(&bin[header("binary").len()..]);
+            std::fs::write(dir.path().join("h.pcd"), &file).unwrap();
+            let message = read_cloud(&dir.path().join("h.pcd"))
+                .unwrap_err()
+                .to_string();
+            assert!(message.contains(says), "{to}: {message}");
         }
         // A compressed body whose stated unpacked size is not its points'.
         let mut wrong = cb.clone();

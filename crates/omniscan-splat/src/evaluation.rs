@@ -81,6 +81,11 @@ pub fn evaluate_views<'a>(
     let one = |i: usize| -> Result<[Option<f64>; 6], SplatError> {
         let v = view(i)?;
         let r = renderer.render(&g, &v.camera, &settings)?;
+        if !r.rgb.iter().flatten().all(|c| c.is_finite()) {
+            return Err(SplatError::Invalid(format!(
+                "view {i}: the model renders NaN or infinite pixels, so no figure can be given for it"
+            )));
+        }
         rendered(i, &v, &r.rgb)?;
         let (w, h) = (v.camera.width as usize, v.camera.height as usize);
         let target: Vec<[f32; 3]> = v

@@ -24,6 +24,15 @@ pub struct Splats {
     pub appearance: crate::raster::Appearance,
 }
 
+/// The largest log-scale a model may hold: e²⁰ ≈ 4.9·10⁸ units. A larger
+/// splat's covariance, squared and projected, overflows `f32` and renders
+/// NaN; no trained model comes near it.
+pub const MAX_LOG_SCALE: f32 = 20.0;
+
+/// The furthest a splat may lie from the origin along an axis, in model
+/// units, for the same reason.
+pub const MAX_COORDINATE: f32 = 1e9;
+
 impl Splats {
     pub fn len(&self) -> usize {
         self.means.len()
@@ -36,7 +45,8 @@ impl Splats {
         coefficients(self.sh_degree)
     }
 
-    /// Checks array sizes and that every value is finite.
+    /// Checks array sizes, that every value is finite, and that no splat is
+    /// beyond [`MAX_LOG_SCALE`] or [`MAX_COORDINATE`].
     pub fn validate(&self) -> Result<(), SplatError> {
         let n = self.len();
         let k = self.sh_coefficients();
@@ -70,6 +80,17 @@ impl Splats {
                     .all(|v| v.is_finite());
             if !finite {
                 return Err(bad(i));
+            }
+            if let Some(&s) = self.log_scales[i].iter().find(|&&s| s > MAX_LOG_SCALE) {
+                return Err(SplatError::Invalid(format!(
+                    "splat {i} has a log-scale of {s}, above {MAX_LOG_SCALE} (a splat larger than 10⁸ units)"
+                )));
+            }
+            if self.means[i].iter().any(|v| v.abs() > MAX_COORDINATE) {
+                return Err(SplatError::Invalid(format!(
+                    "splat {i} lies at {:?}, further than {MAX_COORDINATE:e} units from the origin on an axis",
+                    self.means[i]
+                )));
             }
             if self.quats[i].iter().all(|&v| v == 0.0) {
                 return Err(SplatError::Invalid(format!(

@@ -33,6 +33,9 @@ pub fn splats_from_ply(ply: &PlyFile) -> Result<Splats, String> {
             .ok_or_else(|| format!("not a 3DGS PLY: no `{name}` property"))
     };
     let n = v.count;
+    if n == 0 {
+        return Err("the model has no splats (`element vertex 0`)".into());
+    }
     let rest: Vec<&[f64]> = (0..)
         .map_while(|i| v.scalar(&format!("f_rest_{i}")))
         .collect();

@@ -14,6 +14,7 @@
 use rayon::prelude::*;
 
 use omniscan_core::lens::{Distortion, Undistortion};
+use omniscan_core::paths::confine;
 
 use crate::SplatError;
 use crate::packed::PackedView;
@@ -501,8 +502,10 @@ impl ViewSource {
     /// compared with each other and with the frame's stated `w`, `h`, and
     /// their kinds (an 8-bit greyscale mask, a 16-bit depth map) checked.
     /// The error is the first bad frame's, in order. `None` for a capture,
-    /// which `Capture::load` has already checked this way.
-    pub fn check_photos(&self) -> Result<Option<PhotoSetSummary>, SplatError> {
+    /// which `Capture::load` has already checked this way. With `decode`,
+    /// every file is also decoded to its last pixel (`omniscan validate`),
+    /// which finds truncated and damaged PNGs.
+    pub fn check_photos(&self, decode: bool) -> Result<Option<PhotoSetSummary>, SplatError> {
         use omniscan_core::image_io::probe;
         let Frames::Photos {
             cameras_json,
@@ -529,6 +532,16 @@ impl ViewSource {
                 };
                 let (width, height, colour) = probe(&frame.image_path)?;
                 check_stated_size(cameras_json, index, frame, width, height)?;
+                if decode {
+                    let named = [
+                        &frame.mask_path,
+                        &frame.depth_path,
+                        &frame.gripper_mask_path,
+                    ];
+                    std::iter::once(&frame.image_path)
+                        .chain(named.into_iter().flatten())
+                        .try_for_each(|p| omniscan_core::image_io::check_decodes(p))?;
+                }
                 let companions = [
                     (
                         &frame.mask_path,
@@ -668,10 +681,10 @@ fn cameras_json_frames(
             return Err(bad("`cx`, `cy` must be finite"));
         }
         let file = |key: &str| {
-            fr[key]
+            let rel = fr[key]
                 .as_str()
-                .map(|p| dir.join(p))
-                .ok_or_else(|| bad(&format!("missing {key}")))
+                .ok_or_else(|| bad(&format!("missing {key}")))?;
+            confine(dir, rel).map_err(|e| bad(&format!("{key}: {e}")))
         };
         frames.push(PhotoFrame {
             viewmat,
@@ -699,10 +712,14 @@ fn transforms_json_points(
     let dir = path.parent().unwrap_or(std::path::Path::new("."));
     match d.get("ply_file_path").filter(|v| !v.is_null()) {
         None => Ok(None),
-        Some(v) => v
-            .as_str()
-            .map(|p| Some(dir.join(p)))
-            .ok_or_else(|| SplatError::file(path, "`ply_file_path` must be a path")),
+        Some(v) => {
+            let rel = v
+                .as_str()
+                .ok_or_else(|| SplatError::file(path, "`ply_file_path` must be a path"))?;
+            confine(dir, rel)
+                .map(Some)
+                .map_err(|e| SplatError::file(path, format!("ply_file_path: {e}")))
+        }
     }
 }
 
@@ -784,10 +801,10 @@ fn transforms_json_frames(
                 .get("file_path")
                 .and_then(|v| v.as_str())
                 .ok_or_else(|| bad("missing `file_path`"))?;
-            let p = dir.join(name);
+            let p = confine(dir, name).map_err(|e| bad(&format!("file_path: {e}")))?;
             // Blender's NeRF sets name their PNGs without the extension.
             if p.extension().is_none() && !p.exists() {
-                p.with_extension("png")
+                confine(dir, &format!("{name}.png")).map_err(|e| bad(&format!("file_path: {e}")))?
             } else {
                 p
             }
@@ -818,9 +835,10 @@ fn transforms_json_frames(
             fr.get(key)
                 .filter(|v| !v.is_null())
                 .map(|v| {
-                    v.as_str()
-                        .map(|p| dir.join(p))
-                        .ok_or_else(|| bad(&format!("`{key}` must be a path")))
+                    let rel = v
+                        .as_str()
+                        .ok_or_else(|| bad(&format!("`{key}` must be a path")))?;
+                    confine(dir, rel).map_err(|e| bad(&format!("{key}: {e}")))
                 })
                 .transpose()
         };
@@ -1025,7 +1043,9 @@ fn check_stated_size(
             ));
         }
     }
-    Ok(())
+    // The photo set's pixels: the first pixel's centre at (0.5, 0.5).
+    omniscan_core::camera::check_principal_point(frame.cx - 0.5, frame.cy - 0.5, width, height)
+        .map_err(|e| SplatError::file(cameras_json, format!("frames[{index}]: {e}")))
 }
 
 /// A frame's mask or depth map (`what`, at `path`) must be its image's size.
@@ -1487,7 +1507,7 @@ mod tests {
         std::fs::write(&path, set.to_string()).unwrap();
         let summary = ViewSource::from_photo_set(&path, 1)
             .unwrap()
-            .check_photos()
+            .check_photos(false)
             .unwrap()
             .unwrap();
         assert_eq!(
@@ -1526,7 +1546,7 @@ mod tests {
             let mut bad = masked.clone();
             bad[key] = file_name.into();
             set["frames"] = serde_json::json!([masked, bad]);
-            let error = error_of(&path, &set, |s| s.check_photos());
+            let error = error_of(&path, &set, |s| s.check_photos(false));
             assert!(
                 error.contains("frames[1]") && error.contains(what) && error.contains(message),
                 "{key}: {error}"
@@ -1541,7 +1561,7 @@ mod tests {
         let mut bad = masked.clone();
         bad["mask_path"] = "short.png".into();
         set["frames"] = serde_json::json!([bad]);
-        let error = error_of(&path, &set, |s| s.check_photos());
+        let error = error_of(&path, &set, |s| s.check_photos(false));
         assert!(error.contains("short.png is 8x2 but the image"), "{error}");
     }
 

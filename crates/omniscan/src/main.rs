@@ -42,6 +42,9 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 struct Cli {
     #[command(subcommand)]
     command: Command,
+    /// Read files that a capture.json, transforms.json or cameras.json names outside its own folder (absolute paths, `..`, symbolic links leading out), which are refused otherwise (docs/security.md).
+    #[arg(long, global = true)]
+    allow_outside_paths: bool,
 }
 
 #[derive(Subcommand)]
@@ -279,6 +282,7 @@ fn print_json(report: &impl serde::Serialize) -> Result<()> {
 
 fn run(cli: Cli) -> Result<()> {
     let bars = Bars::new();
+    omniscan_core::paths::set_allow_outside(cli.allow_outside_paths);
     match cli.command {
         Command::Demo { out, object, json } => demo(&out, &object, json, &bars),
         Command::Sim(args) => sim(args, &bars),
@@ -509,7 +513,7 @@ fn validate(capture: &std::path::Path, json: bool) -> Result<()> {
     if let Some(photos) = omniscan_pipeline::views::photo_set_file(capture) {
         let source = omniscan_splat::views::ViewSource::from_photo_set(&photos, 1)?;
         let summary = source
-            .check_photos()?
+            .check_photos(true)?
             .with_context(|| format!("{} is not a photo set", photos.display()))?;
         if json {
             println!("{}", serde_json::to_string(&summary)?);
@@ -537,7 +541,8 @@ fn validate(capture: &std::path::Path, json: bool) -> Result<()> {
         }
         return Ok(());
     }
-    let loaded = Capture::load(capture)?;
+    let loaded = Capture::load_unchecked(capture)?;
+    loaded.validate_pixels()?;
     let summary = loaded.summary();
     if json {
         println!("{}", serde_json::to_string(&summary)?);

@@ -2,21 +2,10 @@
 //! clear failures on bad input.
 
 use std::path::Path;
-use std::process::{Command, Output};
+use std::process::Command;
 
-fn omniscan(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_omniscan"))
-        .args(args)
-        .output()
-        .expect("run omniscan")
-}
-
-/// Asserts that a run failed and that its error says `message`.
-fn assert_refused(out: &Output, message: &str) {
-    assert!(!out.status.success());
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains(message), "{err}");
-}
+mod common;
+use common::{assert_refused, omniscan, tiny_capture};
 
 /// Simulates the built-in remote into `dir` (no empty-gripper pass, no
 /// supersampling) with `flags` added: size, trajectory, slip, noise.
@@ -33,33 +22,6 @@ fn simulate_remote(dir: &Path, flags: &[&str]) {
     ];
     args.extend_from_slice(flags);
     let out = omniscan(&args);
-    assert!(
-        out.status.success(),
-        "sim failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
-
-fn tiny_capture(dir: &Path) {
-    let out = omniscan(&[
-        "sim",
-        "--object",
-        "builtin:remote",
-        "--out",
-        dir.to_str().unwrap(),
-        "--width",
-        "64",
-        "--height",
-        "48",
-        "--wrist-angles",
-        "3",
-        "--latitudes",
-        "2",
-        "--supersample",
-        "1",
-        "--seed",
-        "5",
-    ]);
     assert!(
         out.status.success(),
         "sim failed: {}",
@@ -280,11 +242,11 @@ fn a_nerfstudio_export_trains_and_scores_as_its_capture_does() {
         let p = [a.cos() * b.sin(), a.sin() * b.sin(), b.cos()].map(|v| 0.02 * v);
         cloud.push_str(&format!("{} {} {}\n", p[0], p[1], p[2]));
     }
-    std::fs::write(tmp.path().join("sparse_pc.ply"), cloud).unwrap();
+    std::fs::write(ns.join("sparse_pc.ply"), cloud).unwrap();
     let transforms_path = ns.join("transforms.json");
     let mut transforms: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&transforms_path).unwrap()).unwrap();
-    transforms["ply_file_path"] = "../sparse_pc.ply".into();
+    transforms["ply_file_path"] = "sparse_pc.ply".into();
     std::fs::write(&transforms_path, transforms.to_string()).unwrap();
     let restarted = omniscan_json(&[
         "train",
