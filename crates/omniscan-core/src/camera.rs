@@ -123,6 +123,17 @@ mod tests {
         assert!(k.project(&Point3::new(0.0, 0.0, -1.0)).is_none());
     }
 
+    /// A principal point 2³² pixels out turned every figure into NaN.
+    #[test]
+    fn principal_points_far_outside_the_image_are_refused() {
+        assert!(check_principal_point(320.0, 240.0, 640, 480).is_ok());
+        assert!(check_principal_point(-600.0, 900.0, 640, 480).is_ok());
+        for (cx, cy) in [(4294967296.0, 240.0), (320.0, -481.0), (f64::NAN, 0.0)] {
+            let error = check_principal_point(cx, cy, 640, 480).unwrap_err();
+            assert!(error.contains("is not within"), "{error}");
+        }
+    }
+
     #[test]
     fn opengl_flip_keeps_position_and_turns_axes() {
         let pose = Pose::translation(1.0, 2.0, 3.0);

@@ -375,6 +375,9 @@ fn escape(text: &str) -> String {
 }
 
 /// Writes every output into `out`; returns the verdict file's path.
+/// `verdict.json` is written last, and an earlier one removed first: its
+/// presence says the report beside it is whole (a full disk used to leave
+/// a verdict without its report).
 pub fn write_report(
     out: &Path,
     inspection: &Inspection,
@@ -382,9 +385,13 @@ pub fn write_report(
     settings: &InspectSettings,
 ) -> Result<PathBuf, InspectError> {
     std::fs::create_dir_all(out).map_err(|e| InspectError::file(out, e.to_string()))?;
-    let verdict = verdict_file(inspection, paths, settings);
     let verdict_path = out.join("verdict.json");
-    write_json_atomic(&verdict_path, &verdict)?;
+    match std::fs::remove_file(&verdict_path) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+            return Err(InspectError::file(&verdict_path, e.to_string()));
+        }
+        _ => {}
+    }
 
     // Difference renders: for each pair with the defective model (every
     // pair when none), the four views that see most of its significant
@@ -552,6 +559,7 @@ pub fn write_report(
         escape(COMBINATION)
     );
     write_atomic(&out.join("report.html"), html.as_bytes())?;
+    write_json_atomic(&verdict_path, &verdict_file(inspection, paths, settings))?;
     Ok(verdict_path)
 }
 

@@ -306,6 +306,13 @@ fn the_report_has_every_output() {
         .filter(|c| c[0] > 0.5 && c[1] < 0.5)
         .count();
     assert!(red > 0 && red < cloud.len() / 5, "{red} of {}", cloud.len());
+    // A report that cannot be written (a directory where report.html
+    // goes, as a full disk would fail it) leaves no verdict, not even the
+    // earlier run's.
+    std::fs::remove_file(dir.path().join("report.html")).unwrap();
+    std::fs::create_dir(dir.path().join("report.html")).unwrap();
+    assert!(write_report(dir.path(), &result, &names, &settings()).is_err());
+    assert!(!dir.path().join("verdict.json").exists());
 }
 
 #[test]

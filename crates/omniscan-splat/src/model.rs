@@ -153,3 +153,30 @@ impl Splats {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn one(mean: [f32; 3], log_scale: f32) -> Splats {
+        Splats {
+            means: vec![mean],
+            log_scales: vec![[log_scale; 3]],
+            quats: vec![[1.0, 0.0, 0.0, 0.0]],
+            opacity_logits: vec![0.0],
+            sh: vec![[0.5; 3]],
+            ..Default::default()
+        }
+    }
+
+    /// Finite but absurd splats rendered NaN and scored "PSNR NaN dB".
+    #[test]
+    fn splats_too_large_or_too_far_are_refused() {
+        assert!(one([0.0; 3], MAX_LOG_SCALE).validate().is_ok());
+        assert!(one([MAX_COORDINATE, 0.0, 0.0], -40.0).validate().is_ok());
+        let error = one([0.0; 3], 80.0).validate().unwrap_err().to_string();
+        assert!(error.contains("log-scale of 80"), "{error}");
+        let error = one([0.0, -1e12, 0.0], 0.0).validate().unwrap_err().to_string();
+        assert!(error.contains("further than"), "{error}");
+    }
+}
