@@ -249,17 +249,26 @@ pub fn global_registration(
             best = c.clone();
         }
     }
-    // Final refinement at full resolution, point to point: on splat centres
-    // (thick, noisy surfaces) it has the least bias of the three estimators
-    // (measured with `omniscan bench registration`).
+    // Final refinement at full resolution. Point to plane where the target
+    // carries normals of its own (a sensor's or a mesh's): point to point
+    // locks a cloud sampled on a lattice (a fused RGB-D fragment) one
+    // lattice step off, 8.5 mm on `frag_115`'s halves where point to plane
+    // ends 0.5 mm off. Point to point on clouds without normals (splat
+    // centres): normals estimated on their thick, noisy surfaces bias the
+    // plane estimator (0.26° → 0.44° on `expo`; docs/results.md).
     let spacing = median_spacing(target);
     let ft_target = Target::new(target);
+    let estimator = if target.has_normals() {
+        Estimator::PointToPlane
+    } else {
+        Estimator::PointToPoint
+    };
     let last = icp(
         source,
         &ft_target,
         (3.0 * spacing).max(fine_voxel),
         &best.registration.transformation,
-        Estimator::PointToPoint,
+        estimator,
         Kernel::L2,
         &Criteria {
             max_iteration: 50,

@@ -176,7 +176,10 @@ mod tests {
         assert!(one([MAX_COORDINATE, 0.0, 0.0], -40.0).validate().is_ok());
         let error = one([0.0; 3], 80.0).validate().unwrap_err().to_string();
         assert!(error.contains("log-scale of 80"), "{error}");
-        let error = one([0.0, -1e12, 0.0], 0.0).validate().unwrap_err().to_string();
+        let error = one([0.0, -1e12, 0.0], 0.0)
+            .validate()
+            .unwrap_err()
+            .to_string();
         assert!(error.contains("further than"), "{error}");
     }
 }
