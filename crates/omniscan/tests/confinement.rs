@@ -42,9 +42,11 @@ fn capture_paths_outside_the_folder_are_refused_unless_asked_for() {
     let cap = capture.to_str().unwrap();
 
     set_first_image(&capture, "../outside/secret.png");
+    let model = tmp.path().join("unused.ply");
+    let model = model.to_str().unwrap();
     for command in [
         vec!["validate", cap],
-        vec!["train", cap, "--out", "unused.ply"],
+        vec!["train", cap, "--out", model],
     ] {
         let out = omniscan(&command);
         assert_refused(
