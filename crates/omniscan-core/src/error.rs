@@ -24,6 +24,11 @@ pub enum CoreError {
     },
     #[error("{0}")]
     Invalid(String),
+    /// An output another process holds the lock of ([`crate::lock`]).
+    #[error(
+        "{path} is in use by {holder}: wait for it to finish or stop it (a second run on the same output would mix their results)"
+    )]
+    Busy { path: PathBuf, holder: String },
 }
 
 /// The OS's error in words a user reads without knowing error numbers

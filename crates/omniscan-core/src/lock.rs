@@ -58,10 +58,10 @@ impl OutputLock {
                 } else {
                     holder.to_string()
                 };
-                return Err(CoreError::Invalid(format!(
-                    "{} is in use by {holder}: wait for it to finish or stop it (a second run on the same output would mix their results)",
-                    output.display()
-                )));
+                return Err(CoreError::Busy {
+                    path: output.to_path_buf(),
+                    holder,
+                });
             }
             Err(std::fs::TryLockError::Error(e)) => return Err(CoreError::io(path, e)),
         }

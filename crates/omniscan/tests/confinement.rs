@@ -44,10 +44,7 @@ fn capture_paths_outside_the_folder_are_refused_unless_asked_for() {
     set_first_image(&capture, "../outside/secret.png");
     let model = tmp.path().join("unused.ply");
     let model = model.to_str().unwrap();
-    for command in [
-        vec!["validate", cap],
-        vec!["train", cap, "--out", model],
-    ] {
+    for command in [vec!["validate", cap], vec!["train", cap, "--out", model]] {
         let out = omniscan(&command);
         assert_refused(
             &out,

@@ -1,0 +1,667 @@
+//! The `omniscan` command line: a thin layer over `omniscan-pipeline`.
+//! Each command's flags are the stage's settings struct (flattened), so a
+//! default is written once, in the library; the command prints one summary
+//! line, or the stage's whole report with `--json`. [`run_from`] is the
+//! whole command line, for the binary and for the Python package.
+
+mod gripper;
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, Parser, Subcommand};
+use serde_json::json;
+
+use omniscan_core::capture::{Arm, Capture};
+use omniscan_core::nerfstudio::{ExportOptions, export_nerfstudio};
+use omniscan_pipeline::align::AlignSettings;
+use omniscan_pipeline::evaluate::EvalSettings;
+use omniscan_pipeline::inspect::{InspectionSettings, MakeCopySettings};
+use omniscan_pipeline::mask::MaskingSettings;
+use omniscan_pipeline::render::RenderSettings;
+use omniscan_pipeline::simulate::{PlanSettings, SimulateSettings};
+use omniscan_pipeline::train::TrainSettings;
+use omniscan_pipeline::twin::TwinSettings;
+use omniscan_pipeline::views::{ArmSet, Merge};
+
+use omniscan_pipeline::progress::Bars;
+
+#[derive(Parser)]
+#[command(
+    name = "omniscan",
+    version,
+    about = "360° Gaussian-splat digital twins from bimanual in-hand scans (Omni-Scan)"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+    /// Read files that a capture.json, transforms.json or cameras.json names outside its own folder (absolute paths, `..`, symbolic links leading out), which are refused otherwise (docs/security.md).
+    #[arg(long, global = true)]
+    allow_outside_paths: bool,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run the whole pipeline on a built-in object: simulate a scan, mask it, merge the two arms, export it for nerfstudio, train a first twin.
+    Demo {
+        /// Where to write the demo's outputs.
+        #[arg(long, default_value = "omniscan-demo")]
+        out: PathBuf,
+        /// Built-in object to scan.
+        #[arg(long, default_value = "builtin:flashlight")]
+        object: String,
+        /// Print the report as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Simulate a bimanual in-hand scan and write a capture with ground truth.
+    Sim(SimArgs),
+    /// Check a capture (or a photo set: every image's, mask's and depth map's header and size) and print its summary.
+    Validate {
+        /// Capture directory (or its capture.json), or a photo set (a transforms.json, its directory, or a cameras.json).
+        capture: PathBuf,
+        /// Print the summary as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Gripper and object masks for every frame of a capture (kinematic gripper masks, the paper's object pipeline).
+    Mask(MaskArgs),
+    /// Write a nerfstudio transforms.json (OpenGL camera axes, object masks; gripper masks under omniscan's own gripper_mask_path, which nerfstudio ignores).
+    ExportNerfstudio {
+        capture: PathBuf,
+        #[arg(long, value_enum)]
+        arm: ArmSet,
+        #[command(flatten)]
+        merge: Merge,
+        #[arg(long)]
+        out: PathBuf,
+        /// Leave out mask_path (train on whole images).
+        #[arg(long)]
+        no_masks: bool,
+    },
+    /// Train a splat model on a capture with the paper's masked losses (CPU, or a GPU with --backend).
+    Train(TrainArgs),
+    /// A capture to its 360° twin: a model per arm, the right aligned onto the left from the handover, the merged model from both (resumable).
+    Twin(TwinArgs),
+    /// PSNR and SSIM of a splat model against a capture's views (whole and masked).
+    Eval(EvalArgs),
+    /// Render a splat model from orbiting cameras or a capture's cameras.
+    Render(RenderArgs),
+    /// Register SOURCE onto TARGET (point clouds or splat models) and write the transform.
+    Align(AlignArgs),
+    /// Find the defective copy among splat models of three or more copies of a part, and show where.
+    Inspect(InspectArgs),
+    /// Make a good or defective copy of a splat model (for tests and benchmarks).
+    MakeCopy(CopyArgs),
+    /// Print the gripper poses of the scan trajectory a robot would execute.
+    Plan {
+        #[command(flatten)]
+        plan: PlanSettings,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Benchmarks (numbers go here, not in tests).
+    Bench {
+        #[command(subcommand)]
+        which: omniscan_bench::BenchCommand,
+    },
+}
+
+#[derive(Args)]
+struct SimArgs {
+    /// Output capture directory.
+    #[arg(long)]
+    out: PathBuf,
+    #[command(flatten)]
+    settings: SimulateSettings,
+    /// Print the summary as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
+#[command(args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
+struct MaskArgs {
+    #[command(subcommand)]
+    command: Option<gripper::MaskCommand>,
+    /// Capture directory (or its capture.json).
+    #[arg(required = true)]
+    capture: Option<PathBuf>,
+    #[command(flatten)]
+    settings: MaskingSettings,
+    /// Compare the masks with the simulator's ground truth (mean IoU per arm).
+    #[arg(long)]
+    eval: bool,
+    /// Print the summary as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
+struct TrainArgs {
+    /// The capture directory, or a calibrated photo set: a nerfstudio transforms.json (or its directory; perspective or OPENCV_FISHEYE cameras, their lens distortion undone as the photos are read, the object near the origin or where the cameras look, mask_path as the object mask, else the image's alpha, else the whole image), or a cameras.json (file_path, mask_path, fl_x, fl_y, cx, cy in OpenCV's pixel convention, camera_to_world_opencv per frame). A frame's w, h, when given, must be its image's size, since the intrinsics are in its pixels.
+    capture: PathBuf,
+    /// Output model (3DGS PLY).
+    #[arg(long)]
+    out: PathBuf,
+    #[command(flatten)]
+    settings: TrainSettings,
+    /// Print the report as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
+struct TwinArgs {
+    /// The capture directory (both arms' scans, with masks).
+    capture: PathBuf,
+    /// Folder for the stages' models, transform and records (reused when run again).
+    #[arg(long)]
+    out: PathBuf,
+    #[command(flatten)]
+    settings: TwinSettings,
+    /// Print the summary as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
+struct EvalArgs {
+    /// The splat model (3DGS PLY), or a training checkpoint (MODEL.ply.checkpoint.safetensors) to evaluate a run in progress.
+    model: PathBuf,
+    /// The capture whose views to compare against (or a photo set: a transforms.json, its directory, or a cameras.json).
+    capture: PathBuf,
+    #[command(flatten)]
+    settings: EvalSettings,
+    /// Print the report as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
+struct RenderArgs {
+    /// The splat model (3DGS PLY).
+    model: PathBuf,
+    /// Output directory for the PNG images.
+    #[arg(long)]
+    out: PathBuf,
+    #[command(flatten)]
+    settings: RenderSettings,
+    /// Print the report as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
+struct AlignArgs {
+    /// Point cloud or splat model to move (.ply, .pcd, .xyz).
+    source: PathBuf,
+    /// Point cloud or splat model to align to.
+    target: PathBuf,
+    /// Output JSON: transform (4x4 row-major, maps SOURCE into TARGET), fitness, inlier_rmse, method.
+    #[arg(long)]
+    out: PathBuf,
+    #[command(flatten)]
+    settings: AlignSettings,
+    /// Also print the result as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
+struct InspectArgs {
+    /// Splat models (3DGS PLY) of three or more copies of one part; all are aligned to the first.
+    #[arg(required = true, num_args = 3..)]
+    models: Vec<PathBuf>,
+    /// Output directory (verdict.json, difference renders, defects.ply, report.html).
+    #[arg(long)]
+    out: PathBuf,
+    #[command(flatten)]
+    settings: InspectionSettings,
+    /// Print verdict.json instead of a summary.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
+struct CopyArgs {
+    /// The splat model to copy (3DGS PLY).
+    model: PathBuf,
+    /// Where to write the copy.
+    #[arg(long)]
+    out: PathBuf,
+    #[command(flatten)]
+    settings: MakeCopySettings,
+    /// Print the report as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Runs the command line on `args` (the first the program's name) and
+/// returns the exit status: 0, 1 after an error (printed as `error: …` with
+/// its causes), or clap's status for a usage error or `--help`. The binary
+/// and the Python package's `omniscan` command both call it.
+pub fn run_from<I, T>(args: I) -> i32
+where
+    I: IntoIterator<Item = T>,
+    T: Into<std::ffi::OsString> + Clone,
+{
+    // A second call in one process (Python) keeps the first subscriber.
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .try_init();
+    let cli = match Cli::try_parse_from(args) {
+        Ok(cli) => cli,
+        Err(e) => {
+            let _ = e.print();
+            return e.exit_code();
+        }
+    };
+    match run(cli) {
+        Ok(()) => 0,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            1
+        }
+    }
+}
+
+/// Prints `report` as pretty JSON.
+fn print_json(report: &impl serde::Serialize) -> Result<()> {
+    println!("{}", serde_json::to_string_pretty(report)?);
+    Ok(())
+}
+
+fn run(cli: Cli) -> Result<()> {
+    let bars = Bars::new();
+    omniscan_core::paths::set_allow_outside(cli.allow_outside_paths);
+    match cli.command {
+        Command::Demo { out, object, json } => demo(&out, &object, json, &bars),
+        Command::Sim(args) => sim(args, &bars),
+        Command::Validate { capture, json } => validate(&capture, json),
+        Command::Mask(args) => mask(args, &bars),
+        Command::ExportNerfstudio {
+            capture,
+            arm,
+            merge,
+            out,
+            no_masks,
+        } => export_nerfstudio_set(&capture, arm, &merge, &out, no_masks),
+        Command::Train(args) => train(args, &bars),
+        Command::Twin(args) => twin(args, &bars),
+        Command::Eval(args) => eval(args, &bars),
+        Command::Render(args) => render(args, &bars),
+        Command::Align(args) => align(args),
+        Command::Inspect(args) => inspect(args, &bars),
+        Command::MakeCopy(args) => make_copy(args),
+        Command::Plan { plan, json } => print_plan(&plan, json),
+        Command::Bench { which } => omniscan_bench::run(which),
+    }
+}
+
+fn demo(out: &std::path::Path, object: &str, json: bool, bars: &Bars) -> Result<()> {
+    let report = omniscan_pipeline::demo::demo(object, out, bars)?;
+    if json {
+        return print_json(&report);
+    }
+    println!(
+        "wrote the demo to {}: twin {} ({} splats, held-out masked PSNR {:.2} dB)",
+        out.display(),
+        report.twin.model.display(),
+        report.twin.splats,
+        report.twin.test.psnr_masked.unwrap_or(f64::NAN)
+    );
+    println!(
+        "next: omniscan twin {} --out {} for the full twin; omniscan render {} --out {}",
+        report.capture.display(),
+        out.join("full-twin").display(),
+        report.twin.model.display(),
+        out.join("renders").display()
+    );
+    Ok(())
+}
+
+fn sim(args: SimArgs, bars: &Bars) -> Result<()> {
+    let summary = omniscan_pipeline::simulate::simulate(&args.settings, &args.out, bars)?;
+    if args.json {
+        return print_json(&summary);
+    }
+    println!(
+        "wrote {} ({} frames, {} empty frames) in {:.1} s",
+        summary.capture.display(),
+        summary.frames,
+        summary.empty_frames,
+        summary.seconds
+    );
+    Ok(())
+}
+
+fn export_nerfstudio_set(
+    capture: &std::path::Path,
+    arm: ArmSet,
+    merge: &Merge,
+    out: &std::path::Path,
+    no_masks: bool,
+) -> Result<()> {
+    let right_to_left = merge.read(arm)?;
+    let loaded = Capture::load(capture)?;
+    let views = arm.view_set(&loaded, right_to_left);
+    let summary = export_nerfstudio(
+        &loaded,
+        out,
+        ExportOptions {
+            views,
+            masks: !no_masks,
+        },
+    )?;
+    println!(
+        "wrote {} ({} frames)",
+        summary.transforms.display(),
+        summary.frames
+    );
+    Ok(())
+}
+
+fn train(args: TrainArgs, bars: &Bars) -> Result<()> {
+    let report = omniscan_pipeline::train::train(&args.capture, &args.out, &args.settings, bars)?;
+    if args.json {
+        return print_json(&report);
+    }
+    println!(
+        "wrote {} ({} splats) in {:.0} s; {}",
+        args.out.display(),
+        report.splats,
+        report.seconds,
+        scores(&report)
+    );
+    Ok(())
+}
+
+fn twin(args: TwinArgs, bars: &Bars) -> Result<()> {
+    let report = omniscan_pipeline::twin::twin(&args.capture, &args.out, &args.settings, bars)?;
+    if args.json {
+        return print_json(&report);
+    }
+    let twin = &report.stages.twin.report;
+    let align = &report.stages.align.report;
+    println!(
+        "wrote {} ({} splats); {}; right onto left by {} (fitness {:.4})",
+        report.twin.display(),
+        twin.splats,
+        held_out(&twin.test),
+        align.method,
+        align.fitness,
+    );
+    Ok(())
+}
+
+fn eval(args: EvalArgs, bars: &Bars) -> Result<()> {
+    let report =
+        omniscan_pipeline::evaluate::evaluate(&args.model, &args.capture, &args.settings, bars)?;
+    if args.json {
+        return print_json(&report);
+    }
+    print_evaluation(&report.evaluation);
+    Ok(())
+}
+
+fn render(args: RenderArgs, bars: &Bars) -> Result<()> {
+    let report = omniscan_pipeline::render::render(&args.model, &args.out, &args.settings, bars)?;
+    if args.json {
+        return print_json(&report);
+    }
+    println!(
+        "wrote {} images to {}",
+        report.images.len(),
+        args.out.display()
+    );
+    Ok(())
+}
+
+fn align(args: AlignArgs) -> Result<()> {
+    let report =
+        omniscan_pipeline::align::align(&args.source, &args.target, &args.out, &args.settings)?;
+    if args.json {
+        return print_json(&report);
+    }
+    println!(
+        "{}: fitness {:.4}, inlier RMSE {:.6}, {} iterations, {:.2} s; wrote {}",
+        report.method,
+        report.fitness,
+        report.inlier_rmse,
+        report.iterations,
+        report.seconds,
+        args.out.display()
+    );
+    Ok(())
+}
+
+fn make_copy(args: CopyArgs) -> Result<()> {
+    let report = omniscan_pipeline::inspect::make_copy(&args.model, &args.out, &args.settings)?;
+    if args.json {
+        return print_json(&report);
+    }
+    let defect = match &report.defect {
+        Some(d) => format!(
+            "with a {} mm {} ({} splats changed)",
+            d.size_mm, d.kind, d.affected_splats
+        ),
+        None => "without a defect".into(),
+    };
+    println!(
+        "wrote {} ({} splats), a copy {defect}; --json for its pose and the defect's place",
+        report.copy.display(),
+        report.splats
+    );
+    Ok(())
+}
+
+/// The summary's words for views whose object pixels the model never covers.
+const NO_MASKED_PSNR: &str = "masked PSNR none (the model covers none of their object pixels)";
+
+/// The held-out views' figures in words; without held-out views
+/// (--hold-out-every 0) there is nothing to score, which it says rather
+/// than print NaN.
+fn held_out(test: &omniscan_splat::evaluation::Evaluation) -> String {
+    match (test.psnr, test.psnr_masked) {
+        (Some(psnr), Some(masked)) => {
+            format!("held-out views: PSNR {psnr:.2} dB, masked PSNR {masked:.2} dB")
+        }
+        // Views to score, but no object pixel the model covers: say so
+        // plainly, it is a failed run, not a missing figure.
+        (Some(psnr), None) => format!("held-out views: PSNR {psnr:.2} dB, {NO_MASKED_PSNR}"),
+        _ => "no held-out views to score".to_string(),
+    }
+}
+
+/// A training's held-out and training-view figures in words.
+fn scores(report: &omniscan_pipeline::train::TrainReport) -> String {
+    let held_out = held_out(&report.test);
+    match report.train.psnr_masked {
+        Some(masked) => format!("{held_out}; training views: masked PSNR {masked:.2} dB"),
+        None if report.train.views > 0 => format!("{held_out}; training views: {NO_MASKED_PSNR}"),
+        None => held_out,
+    }
+}
+
+fn print_evaluation(e: &omniscan_splat::evaluation::Evaluation) {
+    let f = |v: Option<f64>| v.unwrap_or(f64::NAN);
+    println!(
+        "{} views: PSNR {:.2} dB, SSIM {:.4}; masked PSNR {:.2} dB, masked SSIM {:.4}; {}",
+        e.views,
+        f(e.psnr),
+        f(e.ssim),
+        f(e.psnr_masked),
+        f(e.ssim_masked),
+        match (e.lpips, e.lpips_masked) {
+            (Some(l), Some(m)) => format!("LPIPS {l:.4}, masked LPIPS {m:.4}"),
+            (Some(l), None) => format!("LPIPS {l:.4}"),
+            _ => "LPIPS not computed (no network given: --lpips FILE.onnx)".into(),
+        }
+    );
+}
+
+fn validate(capture: &std::path::Path, json: bool) -> Result<()> {
+    if let Some(photos) = omniscan_pipeline::views::photo_set_file(capture) {
+        let source = omniscan_splat::views::ViewSource::from_photo_set(&photos, 1)?;
+        let summary = source
+            .check_photos(true)?
+            .with_context(|| format!("{} is not a photo set", photos.display()))?;
+        if json {
+            println!("{}", serde_json::to_string(&summary)?);
+        } else {
+            let size = match (summary.width, summary.height) {
+                (Some(w), Some(h)) => format!("{w}x{h}"),
+                _ => "sizes vary".into(),
+            };
+            println!(
+                "{}: valid photo set ({}), {} frames, {size}, object masks: {} files / {} alpha / {} whole images, depth maps: {}, gripper masks: {}, lens distortion undone: {} frames, initial points: {}",
+                photos.display(),
+                summary.format.name(),
+                summary.frames,
+                summary.mask_files,
+                summary.alpha_masks,
+                summary.whole_image_masks,
+                summary.depth_maps,
+                summary.gripper_masks,
+                summary.undistorted,
+                summary
+                    .initial_points
+                    .as_ref()
+                    .map_or("none".into(), |p| p.display().to_string()),
+            );
+        }
+        return Ok(());
+    }
+    let loaded = Capture::load_unchecked(capture)?;
+    loaded.validate_pixels()?;
+    let summary = loaded.summary();
+    if json {
+        println!("{}", serde_json::to_string(&summary)?);
+    } else {
+        println!(
+            "{}: valid capture v{}, {}x{}, {} left / {} right / {} empty frames, depth: {}, ground truth: {}",
+            capture.display(),
+            summary.version,
+            summary.width,
+            summary.height,
+            summary.left_frames,
+            summary.right_frames,
+            summary.empty_frames,
+            summary.depth,
+            summary.ground_truth
+        );
+    }
+    Ok(())
+}
+
+fn mask(args: MaskArgs, bars: &Bars) -> Result<()> {
+    if let Some(command) = args.command {
+        return gripper::run(command);
+    }
+    let capture = args.capture.context("a capture directory is required")?;
+    let report = omniscan_pipeline::mask::mask(&capture, &args.settings, args.eval, bars)?;
+    if args.json {
+        return print_json(&report);
+    }
+    let summary = &report.masking;
+    println!(
+        "{} frames masked ({} computed, {} kept from an earlier run) in {:.1} s; masks in {}",
+        summary.frames,
+        summary.computed,
+        summary.resumed,
+        summary.seconds,
+        report.mask_dir.display()
+    );
+    if let Some(e) = report.evaluation {
+        let f = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.4}"));
+        println!(
+            "object mIoU: left {}, right {} (lowest frame {:.3}); gripper mIoU: left {}, right {} (lowest frame {:.3})",
+            f(e.object_miou.left),
+            f(e.object_miou.right),
+            e.object_min_iou,
+            f(e.gripper_miou.left),
+            f(e.gripper_miou.right),
+            e.gripper_min_iou
+        );
+    }
+    Ok(())
+}
+
+fn inspect(args: InspectArgs, bars: &Bars) -> Result<()> {
+    let report =
+        omniscan_pipeline::inspect::inspect(&args.models, &args.out, &args.settings, bars)?;
+    if args.json {
+        let text = std::fs::read_to_string(&report.verdict)
+            .with_context(|| format!("reading {}", report.verdict.display()))?;
+        println!("{text}");
+        return Ok(());
+    }
+    for a in &report.alignments {
+        println!(
+            "aligned {} to {}: fitness {:.3}, RMSE {:.5} ({})",
+            a.model.display(),
+            args.models[0].display(),
+            a.fitness,
+            a.inlier_rmse,
+            a.method
+        );
+    }
+    match &report.defective {
+        Some(model) => println!(
+            "defective: {} ({} defect, {:.1} mm² in {} significant region(s), the clearest {:.1} \
+             times what the other copies differ by)",
+            model.display(),
+            report.defect_type,
+            report.area_mm2,
+            report.significant_regions,
+            report.score
+        ),
+        None => println!("no defective model: the copies agree"),
+    }
+    println!(
+        "report: {} ({:.1} s)",
+        report.report.display(),
+        report.seconds
+    );
+    Ok(())
+}
+
+fn print_plan(plan: &PlanSettings, json: bool) -> Result<()> {
+    let config = plan.config();
+    if let Err(e) = config.validate() {
+        bail!("invalid scan plan: {e}");
+    }
+    let left = config.trajectory(Arm::Left);
+    let right = config.trajectory(Arm::Right);
+    if json {
+        return print_json(&json!({
+            "config": config,
+            "units": "metres and radians; poses are gripper (TCP) to world, 4x4 row-major",
+            "camera_to_world": omniscan_core::RigidTransform(config.camera_to_world()),
+            "left": left,
+            "right": right,
+            "left_handover": omniscan_core::RigidTransform(config.left_handover_pose()),
+            "right_handover": "computed from the regrasp chosen on the object at handover: T_rh = T_lh · T_lo · T_ro⁻¹",
+        }));
+    }
+    println!(
+        "scan plan: {} wrist angles x {} latitudes = {} poses per arm",
+        config.wrist_angles,
+        config.latitudes,
+        left.len()
+    );
+    for j in 0..config.latitudes {
+        println!("  latitude {:>6.1}°", config.latitude(j).to_degrees());
+    }
+    let t = config.scan_point_m;
+    println!(
+        "object held at ({:.3}, {:.3}, {:.3}) m; camera {:.2} m away",
+        t[0], t[1], t[2], config.camera_distance_m
+    );
+    println!("use --json for the poses");
+    Ok(())
+}
