@@ -38,6 +38,7 @@
 pub mod align;
 pub mod demo;
 pub mod evaluate;
+pub mod failure;
 pub mod inspect;
 pub mod mask;
 pub mod memory;

@@ -172,38 +172,21 @@ fn to_json(report: impl Serialize) -> Result<serde_json::Value> {
     Ok(serde_json::to_value(report)?)
 }
 
-/// The name of the `omniscan.errors` class for `error`: by the type of the
-/// library error anywhere in its chain.
+/// The name of the `omniscan.errors` class for `error`.
 fn error_class(error: &anyhow::Error) -> &'static str {
-    use omniscan_core::CoreError;
-    let core = |e: &CoreError| match e {
-        CoreError::Io { .. } => "FileError",
-        CoreError::Busy { .. } => "OutputInUse",
-        _ => "InputError",
-    };
-    for cause in error.chain() {
-        if let Some(e) = cause.downcast_ref::<CoreError>() {
-            return core(e);
-        }
-        if let Some(e) = cause.downcast_ref::<omniscan_splat::SplatError>() {
-            return match e {
-                omniscan_splat::SplatError::Core(e) => core(e),
-                _ => "InputError",
-            };
-        }
-        if cause
-            .downcast_ref::<omniscan_register::RegisterError>()
-            .is_some()
-            || cause.downcast_ref::<serde_json::Error>().is_some()
-            || cause.downcast_ref::<BadSetting>().is_some()
-        {
-            return "InputError";
-        }
-        if cause.downcast_ref::<std::io::Error>().is_some() {
-            return "FileError";
-        }
+    use omniscan_pipeline::failure::Failure;
+    if error
+        .chain()
+        .any(|c| c.downcast_ref::<BadSetting>().is_some())
+    {
+        return "InputError";
     }
-    "OmniscanError"
+    match Failure::of(error) {
+        Failure::Input => "InputError",
+        Failure::File => "FileError",
+        Failure::Busy => "OutputInUse",
+        Failure::Other => "OmniscanError",
+    }
 }
 
 /// `error` as the `omniscan.errors` exception for it, with the message the

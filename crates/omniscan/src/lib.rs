@@ -238,8 +238,11 @@ struct CopyArgs {
 }
 
 /// Runs the command line on `args` (the first the program's name) and
-/// returns the exit status: 0, 1 after an error (printed as `error: …` with
-/// its causes), or clap's status for a usage error or `--help`. The binary
+/// returns the exit status: 0, or after an error (printed as `error: …` with
+/// its causes) 1 for bad input, 74 for a file that could not be read or
+/// written, 75 for an output in use
+/// ([`Failure::exit_code`](omniscan_pipeline::failure::Failure::exit_code)),
+/// or clap's 2 for a usage error. The binary
 /// and the Python package's `omniscan` command both call it.
 pub fn run_from<I, T>(args: I) -> i32
 where
@@ -264,7 +267,7 @@ where
         Ok(()) => 0,
         Err(e) => {
             eprintln!("error: {e:#}");
-            1
+            omniscan_pipeline::failure::Failure::of(&e).exit_code()
         }
     }
 }

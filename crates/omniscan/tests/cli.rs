@@ -299,6 +299,38 @@ fn bad_inputs_fail_with_a_message_naming_the_problem() {
     let tmp = tempfile::tempdir().unwrap();
     let capture = tmp.path().join("cap");
     tiny_capture(&capture);
+    // A held output and a missing file exit with sysexits' 75 and 74, which
+    // a batch runner retries; bad input (1) it does not.
+    let busy = tmp.path().join("busy");
+    std::fs::create_dir(&busy).unwrap();
+    let lock = std::fs::File::create(busy.join(".omniscan.lock")).unwrap();
+    lock.try_lock().unwrap();
+    let out = omniscan(&[
+        "twin",
+        capture.to_str().unwrap(),
+        "--out",
+        busy.to_str().unwrap(),
+    ]);
+    assert_eq!(
+        out.status.code(),
+        Some(75),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    drop(lock);
+    let missing = tmp.path().join("missing.ply");
+    let out = omniscan(&[
+        "render",
+        missing.to_str().unwrap(),
+        "--out",
+        tmp.path().join("r").to_str().unwrap(),
+    ]);
+    assert_eq!(
+        out.status.code(),
+        Some(74),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     std::fs::remove_file(capture.join("images/left_002.png")).unwrap();
     let out = omniscan(&["validate", capture.to_str().unwrap(), "--json"]);
     assert_eq!(out.status.code(), Some(1));
