@@ -51,6 +51,7 @@ __all__ = [
     "write_cloud",
     "settings",
     "allow_outside_paths",
+    "use_gpu",
     "Splats",
     "PointCloud",
     "Report",
@@ -88,6 +89,13 @@ def allow_outside_paths(allow: bool = True) -> None:
     """Lets captures and photo sets name files outside their folder, for
     this process (the command line's ``--allow-outside-paths``)."""
     _omniscan.allow_outside_paths(bool(allow))
+
+
+def use_gpu(gpu: Optional[Union[int, str]] = None) -> None:
+    """Makes every GPU this process opens the one ``gpu`` names: an index
+    among the hardware adapters or a PCI bus id ("0000:3b:00.0"); None
+    restores wgpu's high-performance adapter (the command line's ``--gpu``)."""
+    _omniscan.use_gpu(None if gpu is None else str(gpu))
 
 
 def _settings_json(stage: str, kwargs: Mapping[str, Any]) -> str:

@@ -243,6 +243,23 @@ fn allow_outside_paths(allow: bool) {
     omniscan_core::paths::set_allow_outside(allow);
 }
 
+/// Every GPU this process opens from now on is the one `selector` names:
+/// an index among the hardware adapters or a PCI bus id (the command
+/// line's `--gpu`); `None`: wgpu's high-performance adapter.
+#[pyfunction]
+#[pyo3(signature = (selector=None))]
+fn use_gpu(py: Python<'_>, selector: Option<String>) -> PyResult<()> {
+    use omniscan_splat::gpu::select::{GpuSelector, select_gpu};
+    let selector = match selector {
+        None => GpuSelector::Preferred,
+        Some(s) => s
+            .parse()
+            .map_err(|e: String| to_py_err(py, anyhow::Error::new(BadSetting(e))))?,
+    };
+    select_gpu(selector);
+    Ok(())
+}
+
 /// Runs the command line with `argv` (its first item the program's name)
 /// in this process; returns its exit status.
 #[pyfunction]
@@ -257,6 +274,7 @@ fn _omniscan(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(default_settings, m)?)?;
     m.add_function(wrap_pyfunction!(allow_outside_paths, m)?)?;
     m.add_function(wrap_pyfunction!(run_cli, m)?)?;
+    m.add_function(wrap_pyfunction!(use_gpu, m)?)?;
     arrays::register(m)?;
     Ok(())
 }

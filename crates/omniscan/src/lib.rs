@@ -38,6 +38,9 @@ struct Cli {
     /// Read files that a capture.json, transforms.json or cameras.json names outside its own folder (absolute paths, `..`, symbolic links leading out), which are refused otherwise (docs/security.md).
     #[arg(long, global = true)]
     allow_outside_paths: bool,
+    /// The GPU to use where a command renders or trains on one: an index among the hardware adapters (0, 1, ...) or a PCI bus id (0000:3b:00.0, as nvidia-smi prints it). Default: wgpu's high-performance adapter.
+    #[arg(long, global = true, value_name = "INDEX|PCI_BUS_ID")]
+    gpu: Option<omniscan_splat::gpu::select::GpuSelector>,
 }
 
 #[derive(Subcommand)]
@@ -281,6 +284,9 @@ fn print_json(report: &impl serde::Serialize) -> Result<()> {
 fn run(cli: Cli) -> Result<()> {
     let bars = Bars::new();
     omniscan_core::paths::set_allow_outside(cli.allow_outside_paths);
+    if let Some(gpu) = cli.gpu.clone() {
+        omniscan_splat::gpu::select::select_gpu(gpu);
+    }
     match cli.command {
         Command::Demo { out, object, json } => demo(&out, &object, json, &bars),
         Command::Sim(args) => sim(args, &bars),

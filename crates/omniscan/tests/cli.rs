@@ -1816,3 +1816,44 @@ fn the_command_line_speaks_plainly() {
     );
     assert!(!limited.join("orbit_000.png").exists());
 }
+
+/// `--gpu` picks the adapter (a scheduler's assignment on a node with
+/// several GPUs); one that is not there is an error listing those that are.
+#[test]
+#[ignore = "needs a Vulkan device (lavapipe: apt-get install mesa-vulkan-drivers)"]
+fn gpu_picks_the_adapter_and_names_those_there_are() {
+    let tmp = tempfile::tempdir().unwrap();
+    let model = tmp.path().join("m.ply");
+    let splats = omniscan_splat::Splats {
+        means: vec![[0.0; 3]],
+        log_scales: vec![[-3.0; 3]],
+        quats: vec![[1.0, 0.0, 0.0, 0.0]],
+        opacity_logits: vec![2.0],
+        sh: vec![[1.0; 3]],
+        ..Default::default()
+    };
+    omniscan_splat::ply::write_splats(&model, &splats).unwrap();
+    let render = |gpu: &str, out: &str| {
+        omniscan(&[
+            "render",
+            model.to_str().unwrap(),
+            "--out",
+            tmp.path().join(out).to_str().unwrap(),
+            "--orbit",
+            "1",
+            "--backend",
+            "gpu",
+            "--gpu",
+            gpu,
+        ])
+    };
+    let out = render("0", "first");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(tmp.path().join("first/orbit_000.png").is_file());
+    let out = render("99", "none");
+    assert_refused(&out, "--gpu 99 names no adapter; there are: 0: ");
+}

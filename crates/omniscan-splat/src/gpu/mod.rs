@@ -19,6 +19,7 @@
 //! operations inside the projection: a Gaussian whose alpha sits within
 //! rounding of 1/255 at a pixel can be kept by one and skipped by the other.
 
+pub mod select;
 pub mod training;
 
 use std::sync::mpsc;
@@ -195,13 +196,28 @@ impl GpuRenderer {
     /// Opens a GPU (high-performance preference) and compiles the kernels.
     pub fn new(choice: DeviceChoice) -> Result<GpuRenderer, SplatError> {
         let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle());
-        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
-            power_preference: wgpu::PowerPreference::HighPerformance,
-            force_fallback_adapter: false,
-            compatible_surface: None,
-            apply_limit_buckets: false,
-        }))
-        .map_err(|e| gpu_error("no GPU adapter found (is a Vulkan driver installed?)", e))?;
+        let adapter = match select::selected() {
+            select::GpuSelector::Preferred => {
+                pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+                    power_preference: wgpu::PowerPreference::HighPerformance,
+                    force_fallback_adapter: false,
+                    compatible_surface: None,
+                    apply_limit_buckets: false,
+                }))
+                .map_err(|e| gpu_error("no GPU adapter found (is a Vulkan driver installed?)", e))?
+            }
+            selector => {
+                let adapters =
+                    pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()))
+                        .into_iter()
+                        .map(|a| {
+                            let info = a.get_info();
+                            (a, info)
+                        })
+                        .collect();
+                select::pick(&selector, adapters)?
+            }
+        };
         let info = adapter.get_info();
         if choice == DeviceChoice::Hardware && info.device_type == wgpu::DeviceType::Cpu {
             return Err(SplatError::Invalid(format!(
