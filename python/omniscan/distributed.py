@@ -293,6 +293,14 @@ def gpu_flags() -> List[str]:
     return ["--gpu", gpu]
 
 
+def _error_of(stderr: str) -> str:
+    """The command line's error (from its last `error:` line on), in one line."""
+    lines = stderr.strip().splitlines()
+    starts = [i for i, line in enumerate(lines) if line.startswith("error:")]
+    tail = lines[starts[-1] :] if starts else lines[-1:]
+    return " ".join(line.strip() for line in tail)[:1000]
+
+
 def twin_one(capture: str, out: str, settings: Dict[str, str]) -> dict:
     """Makes and commits one capture's twin; the body of a Ray task."""
     store = store_for(out)
@@ -326,7 +334,7 @@ def twin_one(capture: str, out: str, settings: Dict[str, str]) -> dict:
     syncer.join()
     if process.returncode != 0:
         store.push(name, work)  # what the next attempt resumes from
-        message = stderr.strip().splitlines()[-1] if stderr.strip() else f"exit {process.returncode}"
+        message = _error_of(stderr) or f"exit {process.returncode}"
         if process.returncode == 1:
             result.status, result.error = "failed", message
             result.seconds = time.monotonic() - started
@@ -412,15 +420,25 @@ def main(argv: Optional[List[str]] = None) -> int:
     twin.add_argument("--json", action="store_true", help="print the summary as JSON")
     args = parser.parse_args(argv)
     settings = {k: v for k, v in (("steps", args.steps), ("downscale", args.downscale), ("backend", args.backend)) if v is not None}
-    results = run(
-        args.captures,
-        args.out,
-        settings,
-        address=args.address,
-        gpus_per_task=args.gpus_per_task,
-        cpus_per_task=args.cpus_per_task,
-        max_retries=args.max_retries,
-    )
+    # Ray prints its own notices (a worker that died, a retry) on stdout;
+    # they go to stderr, and stdout carries the summary alone.
+    sys.stdout.flush()
+    stdout = os.dup(1)
+    os.dup2(2, 1)
+    try:
+        results = run(
+            args.captures,
+            args.out,
+            settings,
+            address=args.address,
+            gpus_per_task=args.gpus_per_task,
+            cpus_per_task=args.cpus_per_task,
+            max_retries=args.max_retries,
+        )
+    finally:
+        sys.stdout.flush()
+        os.dup2(stdout, 1)
+        os.close(stdout)
     if args.json:
         print(json.dumps([asdict(r) for r in results], indent=2))
     else:
