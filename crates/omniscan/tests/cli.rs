@@ -5,7 +5,7 @@ use std::path::Path;
 use std::process::Command;
 
 mod common;
-use common::{assert_refused, omniscan, tiny_capture};
+use common::{assert_refused, omniscan, tiny_capture, tiny_left_export};
 
 /// Simulates the built-in remote into `dir` (no empty-gripper pass, no
 /// supersampling) with `flags` added: size, trajectory, slip, noise.
@@ -96,18 +96,7 @@ fn a_nerfstudio_export_trains_and_scores_as_its_capture_does() {
     // object masks, gripper masks and depth as the capture's left arm, so it
     // trains to the same model and a model scores the same against either.
     let tmp = tempfile::tempdir().unwrap();
-    let capture = tmp.path().join("cap");
-    tiny_capture(&capture);
-    let ns = tmp.path().join("ns");
-    let out = omniscan(&[
-        "export-nerfstudio",
-        capture.to_str().unwrap(),
-        "--arm",
-        "left",
-        "--out",
-        ns.to_str().unwrap(),
-    ]);
-    assert!(out.status.success());
+    let (capture, ns) = tiny_left_export(tmp.path());
     let checked = omniscan_json(&["validate", ns.to_str().unwrap(), "--json"]);
     assert_eq!(
         (

@@ -5,7 +5,7 @@
 use std::path::Path;
 
 mod common;
-use common::{assert_refused, omniscan, tiny_capture};
+use common::{assert_refused, omniscan, tiny_capture, tiny_left_export};
 
 fn edit_json(path: &Path, edit: impl FnOnce(&mut serde_json::Value)) {
     let mut value: serde_json::Value =
@@ -114,18 +114,7 @@ fn links_out_of_a_capture_are_refused_and_an_export_copies_what_it_may_not_link(
 #[test]
 fn photo_set_paths_are_kept_inside_the_set() {
     let tmp = tempfile::tempdir().unwrap();
-    let capture = tmp.path().join("cap");
-    tiny_capture(&capture);
-    let export = tmp.path().join("ns");
-    let out = omniscan(&[
-        "export-nerfstudio",
-        capture.to_str().unwrap(),
-        "--arm",
-        "left",
-        "--out",
-        export.to_str().unwrap(),
-    ]);
-    assert!(out.status.success(), "{}", stderr(&out));
+    let (_, export) = tiny_left_export(tmp.path());
     let transforms = export.join("transforms.json");
     for (key, path, says) in [
         (

@@ -3,7 +3,7 @@
 
 #![allow(dead_code)]
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 pub fn omniscan(args: &[&str]) -> Output {
@@ -46,4 +46,26 @@ pub fn tiny_capture(dir: &Path) {
         "sim failed: {}",
         String::from_utf8_lossy(&out.stderr)
     );
+}
+
+/// [`tiny_capture`] in `dir/cap` and its left arm exported for nerfstudio
+/// to `dir/ns`.
+pub fn tiny_left_export(dir: &Path) -> (PathBuf, PathBuf) {
+    let capture = dir.join("cap");
+    tiny_capture(&capture);
+    let export = dir.join("ns");
+    let out = omniscan(&[
+        "export-nerfstudio",
+        capture.to_str().unwrap(),
+        "--arm",
+        "left",
+        "--out",
+        export.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (capture, export)
 }
