@@ -40,6 +40,23 @@ impl OutputLock {
     }
 
     fn at(path: &Path, output: &Path, command: &str) -> Result<OutputLock> {
+        // A holder removes the file as it lets go (see `Drop`): a lock taken
+        // on a file that was removed meanwhile guards nothing, so it is
+        // taken again on the file now at `path`.
+        for _ in 0..100 {
+            let file = Self::try_at(path, output)?;
+            if same_file(&file, path) {
+                return Self::hold(file, path, command);
+            }
+        }
+        Err(CoreError::Invalid(format!(
+            "{}: the lock file keeps being replaced; is another program removing it?",
+            path.display()
+        )))
+    }
+
+    /// Opens (or creates) the lock file at `path` and takes its lock.
+    fn try_at(path: &Path, output: &Path) -> Result<std::fs::File> {
         let mut file = std::fs::OpenOptions::new()
             .read(true)
             .write(true)
@@ -48,7 +65,7 @@ impl OutputLock {
             .open(path)
             .map_err(|e| CoreError::io(path, e))?;
         match file.try_lock() {
-            Ok(()) => {}
+            Ok(()) => Ok(file),
             Err(std::fs::TryLockError::WouldBlock) => {
                 let mut holder = String::new();
                 let _ = file.read_to_string(&mut holder);
@@ -58,13 +75,17 @@ impl OutputLock {
                 } else {
                     holder.to_string()
                 };
-                return Err(CoreError::Busy {
+                Err(CoreError::Busy {
                     path: output.to_path_buf(),
                     holder,
-                });
+                })
             }
-            Err(std::fs::TryLockError::Error(e)) => return Err(CoreError::io(path, e)),
+            Err(std::fs::TryLockError::Error(e)) => Err(CoreError::io(path, e)),
         }
+    }
+
+    /// Writes who holds the lock into its file.
+    fn hold(mut file: std::fs::File, path: &Path, command: &str) -> Result<OutputLock> {
         let holder = format!("omniscan {command} (process {})", std::process::id());
         file.set_len(0)
             .and_then(|()| file.rewind())
@@ -79,6 +100,32 @@ impl OutputLock {
     /// The lock file.
     pub fn path(&self) -> &Path {
         &self.path
+    }
+}
+
+/// The lock file goes with the lock, so outputs are not left beside
+/// `.lock` files; it is removed while still locked, and a process that
+/// opened it meanwhile finds it replaced and locks the new one.
+impl Drop for OutputLock {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.path);
+    }
+}
+
+/// Whether the open `file` is the file at `path` now.
+fn same_file(file: &std::fs::File, path: &Path) -> bool {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        match (file.metadata(), std::fs::metadata(path)) {
+            (Ok(a), Ok(b)) => (a.dev(), a.ino()) == (b.dev(), b.ino()),
+            _ => false,
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = file;
+        path.exists()
     }
 }
 
@@ -168,5 +215,40 @@ mod tests {
         let _file = OutputLock::file(&model, "train").unwrap();
         assert!(OutputLock::file(&model, "train").is_err());
         assert!(OutputLock::file(&out.join("right.ply"), "train").is_ok());
+    }
+
+    /// The lock file goes with its lock, and removing it as the holder lets
+    /// go never lets two holders in at once: threads hold flock locks as
+    /// processes do (one per open file).
+    #[test]
+    fn lock_files_go_with_their_lock_and_one_holder_holds_at_a_time() {
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        let dir = tempfile::tempdir().unwrap();
+        let model = dir.path().join("m.ply");
+        let lock = OutputLock::file(&model, "train").unwrap();
+        assert!(lock.path().exists());
+        let path = lock.path().to_path_buf();
+        drop(lock);
+        assert!(!path.exists(), "the lock file outlived its lock");
+
+        let holders = AtomicUsize::new(0);
+        let held = AtomicUsize::new(0);
+        std::thread::scope(|scope| {
+            for _ in 0..4 {
+                scope.spawn(|| {
+                    for _ in 0..300 {
+                        if let Ok(lock) = OutputLock::file(&model, "train") {
+                            assert_eq!(holders.fetch_add(1, Ordering::SeqCst), 0, "two holders");
+                            held.fetch_add(1, Ordering::SeqCst);
+                            std::thread::yield_now();
+                            holders.fetch_sub(1, Ordering::SeqCst);
+                            drop(lock);
+                        }
+                    }
+                });
+            }
+        });
+        assert!(held.load(Ordering::SeqCst) > 0);
+        assert!(!path.exists());
     }
 }
