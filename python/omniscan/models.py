@@ -55,7 +55,8 @@ class PointCloud:
 
 
 def read_splats(path: PathLike) -> Splats:
-    """Reads a 3DGS PLY (INRIA / gsplat layout, ASCII or binary)."""
+    """Reads a splat model: a 3DGS PLY (INRIA / gsplat layout, ASCII or
+    binary) or a ``.splat`` web-viewer file, by extension."""
     means, scales, quats, opacities, sh, _degree, antialiased, appearance = (
         _omniscan.read_splats_arrays(os.fspath(path))
     )
@@ -63,8 +64,9 @@ def read_splats(path: PathLike) -> Splats:
 
 
 def write_splats(path: PathLike, splats: Splats) -> None:
-    """Writes ``splats`` as a binary 3DGS PLY, atomically; refuses a model
-    with mismatched shapes, NaN or infinite values."""
+    """Writes ``splats`` atomically in the format the extension names
+    (``.ply``: binary 3DGS PLY; ``.splat``: base colour only); refuses a
+    model with mismatched shapes, NaN or infinite values."""
     f32 = lambda a: np.ascontiguousarray(a, dtype=np.float32)  # noqa: E731
     _omniscan.write_splats_arrays(
         os.fspath(path),

@@ -39,6 +39,8 @@ mod seeds;
 pub enum Target {
     /// A 3DGS splat model (`omniscan_splat::ply::read_splats`).
     PlySplats,
+    /// A `.splat` web-viewer model.
+    DotSplat,
     /// A point cloud in PLY (`omniscan_register::cloud::read_cloud`).
     PlyCloud,
     /// A PCL point cloud, ASCII, binary and compressed.
@@ -58,8 +60,9 @@ pub enum Target {
 }
 
 impl Target {
-    pub const ALL: [Target; 9] = [
+    pub const ALL: [Target; 10] = [
         Target::PlySplats,
+        Target::DotSplat,
         Target::PlyCloud,
         Target::Pcd,
         Target::Xyz,
@@ -73,6 +76,7 @@ impl Target {
     pub fn name(self) -> &'static str {
         match self {
             Target::PlySplats => "ply-splats",
+            Target::DotSplat => "dot-splat",
             Target::PlyCloud => "ply-cloud",
             Target::Pcd => "pcd",
             Target::Xyz => "xyz",
@@ -93,6 +97,7 @@ impl Target {
     fn file_name(self) -> &'static str {
         match self {
             Target::PlySplats | Target::PlyCloud => "input.ply",
+            Target::DotSplat => "input.splat",
             Target::Pcd => "input.pcd",
             Target::Xyz => "input.xyz",
             Target::Capture => "capture.json",
@@ -117,7 +122,7 @@ pub enum Outcome {
 fn read(target: Target, path: &Path) -> Outcome {
     let refused = |e: &dyn std::fmt::Display| Outcome::Refused(e.to_string());
     match target {
-        Target::PlySplats => match omniscan_splat::ply::read_splats(path) {
+        Target::PlySplats | Target::DotSplat => match omniscan_splat::ply::read_splats(path) {
             Err(e) => refused(&e),
             Ok(splats) => splats_keep_their_promise(&splats, path),
         },

@@ -12,7 +12,7 @@ use omniscan_fuzz::{Target, fuzz};
 #[derive(Parser)]
 #[command(name = "omniscan-fuzz", about = "Fuzz omniscan's file readers")]
 struct Args {
-    /// Readers to fuzz (ply-splats, ply-cloud, pcd, xyz, capture, transforms-json, cameras-json, checkpoint, png), or `all`.
+    /// Readers to fuzz (ply-splats, dot-splat, ply-cloud, pcd, xyz, capture, transforms-json, cameras-json, checkpoint, png), or `all`.
     #[arg(default_value = "all")]
     targets: Vec<String>,
     /// Seconds to fuzz each target.

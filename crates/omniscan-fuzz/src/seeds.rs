@@ -17,6 +17,9 @@ pub fn write(target: Target, dir: &Path) -> Result<Vec<Vec<u8>>> {
     std::fs::create_dir_all(dir)?;
     let mut seeds = match target {
         Target::PlySplats => splat_models(dir)?,
+        Target::DotSplat => [(0, 3), (2, 2)]
+            .map(|(degree, n)| omniscan_splat::ply::to_dot_splat(&model(degree, n)))
+            .to_vec(),
         Target::PlyCloud => clouds_ply(dir)?,
         Target::Pcd => pcd(),
         Target::Xyz => vec![

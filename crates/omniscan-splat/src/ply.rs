@@ -19,10 +19,58 @@ use crate::sh::{C0, coefficients};
 use crate::{SplatError, Splats};
 use omniscan_core::ply::{Column, Element, Format, PlyFile, Property, ScalarType};
 
-/// Reads a 3DGS PLY file.
+/// The model file formats omniscan reads and writes, told by extension.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ModelFormat {
+    /// The 3DGS PLY (`.ply`): every parameter, lossless.
+    Ply,
+    /// The web viewers' `.splat`: 32 bytes a splat, base colour only.
+    DotSplat,
+}
+
+impl ModelFormat {
+    /// The format's name for messages.
+    pub fn name(self) -> &'static str {
+        match self {
+            ModelFormat::Ply => "3DGS PLY",
+            ModelFormat::DotSplat => ".splat",
+        }
+    }
+
+    /// The format `path`'s extension names; an unknown one is an error
+    /// listing those there are.
+    pub fn of(path: &Path) -> Result<ModelFormat, SplatError> {
+        let extension = path
+            .extension()
+            .map(|e| e.to_string_lossy().to_ascii_lowercase());
+        match extension.as_deref() {
+            Some("ply") => Ok(ModelFormat::Ply),
+            Some("splat") => Ok(ModelFormat::DotSplat),
+            other => Err(SplatError::file(
+                path,
+                format!(
+                    "unknown model format {}: omniscan reads and writes .ply (3DGS PLY) and .splat (web viewers)",
+                    other.map_or("(no extension)".to_string(), |e| format!("`.{e}`"))
+                ),
+            )),
+        }
+    }
+}
+
+/// Reads a splat model: a 3DGS PLY, or a `.splat` file (by extension; a
+/// file with another extension is read as PLY when it is one).
 pub fn read_splats(path: &Path) -> Result<Splats, SplatError> {
-    let ply = omniscan_core::ply::read(path)?;
-    splats_from_ply(&ply).map_err(|m| SplatError::file(path, m))
+    let bytes = std::fs::read(path).map_err(|e| omniscan_core::CoreError::io(path, e))?;
+    let format = match ModelFormat::of(path) {
+        Ok(format) => format,
+        Err(_) if bytes.starts_with(b"ply") => ModelFormat::Ply,
+        Err(e) => return Err(e),
+    };
+    let splats = match format {
+        ModelFormat::Ply => omniscan_core::ply::parse(&bytes).and_then(|ply| splats_from_ply(&ply)),
+        ModelFormat::DotSplat => from_dot_splat(&bytes),
+    };
+    splats.map_err(|m| SplatError::file(path, m))
 }
 
 /// Interprets a parsed PLY as a splat model.
@@ -158,11 +206,62 @@ pub fn splats_to_ply(s: &Splats) -> PlyFile {
     }
 }
 
-/// Writes a binary 3DGS PLY atomically.
+/// Writes a model atomically in the format `path`'s extension names
+/// ([`ModelFormat`]): a binary 3DGS PLY, or `.splat`, which keeps only the
+/// base colour (a note says so when the model has higher SH bands).
 pub fn write_splats(path: &Path, s: &Splats) -> Result<(), SplatError> {
     s.validate()?;
-    omniscan_core::io::write_atomic(path, &omniscan_core::ply::to_binary_le(&splats_to_ply(s)))?;
+    let bytes = match ModelFormat::of(path)? {
+        ModelFormat::Ply => omniscan_core::ply::to_binary_le(&splats_to_ply(s)),
+        ModelFormat::DotSplat => {
+            if s.sh_degree > 0 {
+                tracing::warn!(
+                    "{}: .splat keeps the base colour only; SH bands 1-{} are not written",
+                    path.display(),
+                    s.sh_degree
+                );
+            }
+            to_dot_splat(s)
+        }
+    };
+    omniscan_core::io::write_atomic(path, &bytes)?;
     Ok(())
+}
+
+/// Reads the `.splat` web format ([`to_dot_splat`]): linear scales, 8-bit
+/// RGBA (colour after the DC band, opacity after the sigmoid) and an 8-bit
+/// rotation, all turned back into the model's parameters.
+pub fn from_dot_splat(bytes: &[u8]) -> Result<Splats, String> {
+    if bytes.is_empty() || !bytes.len().is_multiple_of(32) {
+        return Err(format!(
+            "not a .splat file: {} bytes is not a whole number of 32-byte splats",
+            bytes.len()
+        ));
+    }
+    let f32_at = |b: &[u8], i: usize| f32::from_le_bytes(b[4 * i..4 * i + 4].try_into().unwrap());
+    // 8-bit values stay off 0 and 1, where the logit and log are infinite.
+    let unit = |byte: u8| (f32::from(byte) / 255.0).clamp(0.5 / 255.0, 254.5 / 255.0);
+    let mut s = Splats::default();
+    for (index, b) in bytes.chunks_exact(32).enumerate() {
+        s.means.push([f32_at(b, 0), f32_at(b, 1), f32_at(b, 2)]);
+        let scale = [f32_at(b, 3), f32_at(b, 4), f32_at(b, 5)];
+        if !scale.iter().all(|v| v.is_finite() && *v > 0.0) {
+            return Err(format!(
+                "splat {index}: scales must be positive, got {scale:?}"
+            ));
+        }
+        s.log_scales.push(scale.map(f32::ln));
+        s.sh.push([b[24], b[25], b[26]].map(|c| (f32::from(c) / 255.0 - 0.5) / C0 as f32));
+        let alpha = unit(b[27]);
+        s.opacity_logits.push((alpha / (1.0 - alpha)).ln());
+        let q = [b[28], b[29], b[30], b[31]].map(|v| (f32::from(v) - 128.0) / 128.0);
+        if q.iter().all(|v| *v == 0.0) {
+            return Err(format!("splat {index}: the rotation is zero"));
+        }
+        s.quats.push(q);
+    }
+    s.validate().map_err(|e| e.to_string())?;
+    Ok(s)
 }
 
 /// The `.splat` web format: 32 bytes per splat (position, scale, RGBA, and
@@ -273,5 +372,54 @@ mod tests {
         let s = sample(0);
         let bytes = to_dot_splat(&s);
         assert_eq!(bytes.len(), 32 * s.len());
+    }
+
+    /// `.splat` by extension, read back within its 8-bit quantisation;
+    /// an unknown extension names the formats there are.
+    #[test]
+    fn the_extension_chooses_the_format_and_splat_reads_back() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = sample(0);
+        let path = dir.path().join("m.splat");
+        write_splats(&path, &s).unwrap();
+        assert_eq!(std::fs::read(&path).unwrap(), to_dot_splat(&s));
+        let back = read_splats(&path).unwrap();
+        assert_eq!(back.len(), s.len());
+        // Splats come back ordered by visibility: match them by position.
+        let sigmoid = |x: f32| 1.0 / (1.0 + (-x).exp());
+        for i in 0..s.len() {
+            let j = (0..back.len())
+                .find(|&j| back.means[j] == s.means[i])
+                .unwrap();
+            for a in 0..3 {
+                assert!((back.log_scales[j][a] - s.log_scales[i][a]).abs() < 1e-5);
+                let colour = |sh: &[f32; 3]| 0.5 + C0 as f32 * sh[a];
+                assert!(
+                    (colour(&back.sh[j]) - colour(&s.sh[i]).clamp(0.0, 1.0)).abs()
+                        <= 0.5 / 255.0 + 1e-6
+                );
+            }
+            assert!(
+                (sigmoid(back.opacity_logits[j]) - sigmoid(s.opacity_logits[i])).abs()
+                    <= 0.5 / 255.0 + 1e-6
+            );
+        }
+        for name in ["m.spz", "m"] {
+            let error = write_splats(&dir.path().join(name), &s)
+                .unwrap_err()
+                .to_string();
+            assert!(
+                error.contains("omniscan reads and writes .ply (3DGS PLY) and .splat"),
+                "{error}"
+            );
+        }
+        std::fs::write(dir.path().join("bad.splat"), [0u8; 33]).unwrap();
+        let error = read_splats(&dir.path().join("bad.splat"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("not a whole number of 32-byte splats"),
+            "{error}"
+        );
     }
 }

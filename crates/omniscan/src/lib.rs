@@ -67,6 +67,13 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Convert a splat model between formats, chosen by extension: .ply (3DGS PLY, lossless) and .splat (web viewers: base colour only, 8-bit colour, opacity and rotation).
+    Convert {
+        /// The model to read.
+        input: PathBuf,
+        /// The model to write.
+        output: PathBuf,
+    },
     /// Gripper and object masks for every frame of a capture (kinematic gripper masks, the paper's object pipeline).
     Mask(MaskArgs),
     /// Write a nerfstudio transforms.json (OpenGL camera axes, object masks; gripper masks under omniscan's own gripper_mask_path, which nerfstudio ignores).
@@ -291,6 +298,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Demo { out, object, json } => demo(&out, &object, json, &bars),
         Command::Sim(args) => sim(args, &bars),
         Command::Validate { capture, json } => validate(&capture, json),
+        Command::Convert { input, output } => convert(&input, &output),
         Command::Mask(args) => mask(args, &bars),
         Command::ExportNerfstudio {
             capture,
@@ -511,6 +519,21 @@ fn print_evaluation(e: &omniscan_splat::evaluation::Evaluation) {
             _ => "LPIPS not computed (no network given: --lpips FILE.onnx)".into(),
         }
     );
+}
+
+fn convert(input: &std::path::Path, output: &std::path::Path) -> Result<()> {
+    use omniscan_splat::ply::{ModelFormat, read_splats, write_splats};
+    // Refuse an unknown output format before reading the input.
+    let format = ModelFormat::of(output)?;
+    let model = read_splats(input)?;
+    write_splats(output, &model)?;
+    println!(
+        "wrote {} splats to {} ({})",
+        model.len(),
+        output.display(),
+        format.name()
+    );
+    Ok(())
 }
 
 fn validate(capture: &std::path::Path, json: bool) -> Result<()> {

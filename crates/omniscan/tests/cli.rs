@@ -1846,3 +1846,42 @@ fn gpu_picks_the_adapter_and_names_those_there_are() {
     let out = render("99", "none");
     assert_refused(&out, "--gpu 99 names no adapter; there are: 0: ");
 }
+
+/// `convert` goes by extension both ways; an unknown one names the formats.
+#[test]
+fn convert_chooses_formats_by_extension() {
+    let tmp = tempfile::tempdir().unwrap();
+    let ply = tmp.path().join("m.ply");
+    let splats = omniscan_splat::Splats {
+        means: vec![[0.0; 3], [0.1, 0.0, 0.0]],
+        log_scales: vec![[-3.0; 3]; 2],
+        quats: vec![[1.0, 0.0, 0.0, 0.0]; 2],
+        opacity_logits: vec![1.0, -1.0],
+        sh: vec![[0.2; 3], [-0.2; 3]],
+        ..Default::default()
+    };
+    omniscan_splat::ply::write_splats(&ply, &splats).unwrap();
+    let web = tmp.path().join("m.splat");
+    let back = tmp.path().join("back.ply");
+    for (from, to) in [(&ply, &web), (&web, &back)] {
+        let out = omniscan(&["convert", from.to_str().unwrap(), to.to_str().unwrap()]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert!(String::from_utf8_lossy(&out.stdout).starts_with("wrote 2 splats"));
+    }
+    assert_eq!(std::fs::read(&web).unwrap().len(), 64);
+    let round = omniscan_splat::ply::read_splats(&back).unwrap();
+    assert_eq!(round.len(), 2);
+    let out = omniscan(&[
+        "convert",
+        ply.to_str().unwrap(),
+        tmp.path().join("m.spz").to_str().unwrap(),
+    ]);
+    assert_refused(
+        &out,
+        "unknown model format `.spz`: omniscan reads and writes .ply",
+    );
+}
