@@ -199,9 +199,19 @@ fn viewmat_of_camera_to_world(c2w: &nalgebra::Matrix4<f64>) -> Option<[[f32; 4];
     if !(s.is_finite() && s > 0.0 && c2w.fixed_view::<3, 3>(0, 0).determinant() > 0.0) {
         return None;
     }
-    let svd = (c2w.fixed_view::<3, 3>(0, 0).into_owned() / s).svd(true, true);
+    let scaled = c2w.fixed_view::<3, 3>(0, 0).into_owned() / s;
+    let svd = scaled.svd(true, true);
     let rot = svd.u? * svd.v_t?;
+    // Rounding in a file's digits is projected away; a matrix further from
+    // a scaled rotation than that is refused, not turned into an arbitrary
+    // one (a fuzzed 1e308 in a column made the SVD's rotation NaN).
+    if !((scaled - rot).norm() <= 1e-3) {
+        return None;
+    }
     let centre = c2w.fixed_view::<3, 1>(0, 3).into_owned();
+    if !centre.iter().all(|v| v.is_finite()) {
+        return None;
+    }
     let rt = rot.transpose();
     let t = -(rt * centre);
     let mut viewmat = [[0.0f32; 4]; 4];
@@ -672,7 +682,7 @@ fn cameras_json_frames(
             .ok_or_else(|| bad("camera_to_world_opencv must be a 4x4 matrix"))?;
         // Normalised world: x' = S⁻¹x; the camera keeps its rotation up to the uniform scale.
         let viewmat = viewmat_of_camera_to_world(&(normalise * c2w)).ok_or_else(|| {
-            bad("camera_to_world_opencv's 3x3 block is not a rotation (zero, mirrored or not finite)")
+            bad("camera_to_world_opencv's 3x3 block is not a rotation (zero, mirrored, not finite, or not orthogonal to 1e-3)")
         })?;
         let positive = |k: &str| positive_focal(k, num(k)?).map_err(|e| bad(&e));
         let (fl_x, fl_y) = (positive("fl_x")?, positive("fl_y")?);
@@ -794,7 +804,7 @@ fn transforms_json_frames(
             .and_then(matrix4)
             .ok_or_else(|| bad("`transform_matrix` must be a 4x4 matrix"))?;
         let viewmat = viewmat_of_camera_to_world(&(c2w * opengl_to_opencv)).ok_or_else(|| {
-            bad("transform_matrix's 3x3 block is not a rotation (zero, mirrored or not finite)")
+            bad("transform_matrix's 3x3 block is not a rotation (zero, mirrored, not finite, or not orthogonal to 1e-3)")
         })?;
         let image_path = {
             let name = fr
@@ -1270,7 +1280,31 @@ mod tests {
             [0., 0., 1., 0.],
             [0., 0., 0., 1.],
         ];
-        let cases: [(&str, serde_json::Value, &str); 5] = [
+        // Found by fuzzing: 1e308 in a column turned the projected rotation
+        // into NaN; a sheared block was taken for some rotation.
+        let overflowing = [
+            [1., 1e308, 0., 0.],
+            [0., 1., 0., 0.],
+            [0., 0., 1., 0.],
+            [0., 0., 0., 1.],
+        ];
+        let sheared = [
+            [1., 0.2, 0., 0.],
+            [0., 1., 0., 0.],
+            [0., 0., 1., 0.],
+            [0., 0., 0., 1.],
+        ];
+        let cases: [(&str, serde_json::Value, &str); 7] = [
+            (
+                "camera_to_world_opencv",
+                serde_json::json!(overflowing),
+                "is not a rotation",
+            ),
+            (
+                "camera_to_world_opencv",
+                serde_json::json!(sheared),
+                "is not a rotation",
+            ),
             ("w", serde_json::json!(16), "`w` is 16 but the image"),
             (
                 "fl_x",
