@@ -205,7 +205,8 @@ fn viewmat_of_camera_to_world(c2w: &nalgebra::Matrix4<f64>) -> Option<[[f32; 4];
     // Rounding in a file's digits is projected away; a matrix further from
     // a scaled rotation than that is refused, not turned into an arbitrary
     // one (a fuzzed 1e308 in a column made the SVD's rotation NaN).
-    if !((scaled - rot).norm() <= 1e-3) {
+    let off = (scaled - rot).norm();
+    if off.is_nan() || off > 1e-3 {
         return None;
     }
     let centre = c2w.fixed_view::<3, 1>(0, 3).into_owned();
@@ -222,7 +223,12 @@ fn viewmat_of_camera_to_world(c2w: &nalgebra::Matrix4<f64>) -> Option<[[f32; 4];
         viewmat[r][3] = t[r] as f32;
     }
     viewmat[3][3] = 1.0;
-    Some(viewmat)
+    // A position beyond single precision (a fuzzed 1e308) is no camera.
+    viewmat
+        .iter()
+        .flatten()
+        .all(|v| v.is_finite())
+        .then_some(viewmat)
 }
 
 /// A focal length that is a positive, finite number of pixels.
@@ -682,7 +688,7 @@ fn cameras_json_frames(
             .ok_or_else(|| bad("camera_to_world_opencv must be a 4x4 matrix"))?;
         // Normalised world: x' = S⁻¹x; the camera keeps its rotation up to the uniform scale.
         let viewmat = viewmat_of_camera_to_world(&(normalise * c2w)).ok_or_else(|| {
-            bad("camera_to_world_opencv's 3x3 block is not a rotation (zero, mirrored, not finite, or not orthogonal to 1e-3)")
+            bad("camera_to_world_opencv's 3x3 block is not a rotation (zero, mirrored, not finite, or not orthogonal to 1e-3) or its position is out of range")
         })?;
         let positive = |k: &str| positive_focal(k, num(k)?).map_err(|e| bad(&e));
         let (fl_x, fl_y) = (positive("fl_x")?, positive("fl_y")?);
@@ -804,7 +810,7 @@ fn transforms_json_frames(
             .and_then(matrix4)
             .ok_or_else(|| bad("`transform_matrix` must be a 4x4 matrix"))?;
         let viewmat = viewmat_of_camera_to_world(&(c2w * opengl_to_opencv)).ok_or_else(|| {
-            bad("transform_matrix's 3x3 block is not a rotation (zero, mirrored, not finite, or not orthogonal to 1e-3)")
+            bad("transform_matrix's 3x3 block is not a rotation (zero, mirrored, not finite, or not orthogonal to 1e-3) or its position is out of range")
         })?;
         let image_path = {
             let name = fr
@@ -1294,7 +1300,18 @@ mod tests {
             [0., 0., 1., 0.],
             [0., 0., 0., 1.],
         ];
-        let cases: [(&str, serde_json::Value, &str); 7] = [
+        let far = [
+            [1., 0., 0., 1e308],
+            [0., 1., 0., 0.],
+            [0., 0., 1., 0.],
+            [0., 0., 0., 1.],
+        ];
+        let cases: [(&str, serde_json::Value, &str); 8] = [
+            (
+                "camera_to_world_opencv",
+                serde_json::json!(far),
+                "its position is out of range",
+            ),
             (
                 "camera_to_world_opencv",
                 serde_json::json!(overflowing),
