@@ -22,34 +22,56 @@ use omniscan_core::ply::{Column, Element, Format, PlyFile, Property, ScalarType}
 /// The model file formats omniscan reads and writes, told by extension.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ModelFormat {
-    /// The 3DGS PLY (`.ply`): every parameter, lossless.
+    /// The 3DGS PLY (`.ply`): every parameter, lossless. PlayCanvas'
+    /// compressed PLY is read from a `.ply` too, told by its content.
     Ply,
+    /// PlayCanvas' compressed PLY (`.compressed.ply`), read only.
+    CompressedPly,
     /// The web viewers' `.splat`: 32 bytes a splat, base colour only.
     DotSplat,
+    /// Niantic's SPZ (`.spz`), written as version 4.
+    Spz,
+    /// Binary glTF with `KHR_gaussian_splatting` (`.glb`).
+    Glb,
 }
+
+/// What `omniscan` lists when an extension is unknown.
+const SUPPORTED: &str = ".ply (3DGS PLY), .compressed.ply (PlayCanvas, read only), .spz (Niantic SPZ), .glb (glTF KHR_gaussian_splatting) and .splat (web viewers)";
 
 impl ModelFormat {
     /// The format's name for messages.
     pub fn name(self) -> &'static str {
         match self {
             ModelFormat::Ply => "3DGS PLY",
+            ModelFormat::CompressedPly => "compressed PLY",
             ModelFormat::DotSplat => ".splat",
+            ModelFormat::Spz => "SPZ",
+            ModelFormat::Glb => "glTF (KHR_gaussian_splatting)",
         }
     }
 
     /// The format `path`'s extension names; an unknown one is an error
     /// listing those there are.
     pub fn of(path: &Path) -> Result<ModelFormat, SplatError> {
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().to_ascii_lowercase())
+            .unwrap_or_default();
+        if name.ends_with(".compressed.ply") {
+            return Ok(ModelFormat::CompressedPly);
+        }
         let extension = path
             .extension()
             .map(|e| e.to_string_lossy().to_ascii_lowercase());
         match extension.as_deref() {
             Some("ply") => Ok(ModelFormat::Ply),
             Some("splat") => Ok(ModelFormat::DotSplat),
+            Some("spz") => Ok(ModelFormat::Spz),
+            Some("glb") => Ok(ModelFormat::Glb),
             other => Err(SplatError::file(
                 path,
                 format!(
-                    "unknown model format {}: omniscan reads and writes .ply (3DGS PLY) and .splat (web viewers)",
+                    "unknown model format {}: omniscan reads {SUPPORTED}",
                     other.map_or("(no extension)".to_string(), |e| format!("`.{e}`"))
                 ),
             )),
@@ -57,8 +79,8 @@ impl ModelFormat {
     }
 }
 
-/// Reads a splat model: a 3DGS PLY, or a `.splat` file (by extension; a
-/// file with another extension is read as PLY when it is one).
+/// Reads a splat model in the format its extension names ([`ModelFormat`];
+/// a file with another extension is read as PLY when it is one).
 pub fn read_splats(path: &Path) -> Result<Splats, SplatError> {
     let bytes = std::fs::read(path).map_err(|e| omniscan_core::CoreError::io(path, e))?;
     let format = match ModelFormat::of(path) {
@@ -67,10 +89,19 @@ pub fn read_splats(path: &Path) -> Result<Splats, SplatError> {
         Err(e) => return Err(e),
     };
     let splats = match format {
-        ModelFormat::Ply => omniscan_core::ply::parse(&bytes).and_then(|ply| splats_from_ply(&ply)),
+        ModelFormat::Ply | ModelFormat::CompressedPly => omniscan_core::ply::parse(&bytes)
+            .and_then(|ply| {
+                if crate::compressed_ply::is_compressed(&ply) {
+                    crate::compressed_ply::splats_from_compressed_ply(&ply)
+                } else {
+                    splats_from_ply(&ply)
+                }
+            }),
         ModelFormat::DotSplat => from_dot_splat(&bytes),
+        ModelFormat::Spz => crate::spz::from_spz(&bytes),
+        ModelFormat::Glb => crate::glb::from_glb(&bytes),
     };
-    splats.map_err(|m| SplatError::file(path, m))
+    splats.map_err(|m| SplatError::file(path, format!("{}: {m}", format.name())))
 }
 
 /// Interprets a parsed PLY as a splat model.
@@ -207,22 +238,37 @@ pub fn splats_to_ply(s: &Splats) -> PlyFile {
 }
 
 /// Writes a model atomically in the format `path`'s extension names
-/// ([`ModelFormat`]): a binary 3DGS PLY, or `.splat`, which keeps only the
-/// base colour (a note says so when the model has higher SH bands).
+/// ([`ModelFormat`]). The lossy formats say what they drop: `.splat` keeps
+/// the base colour only; SPZ and glTF keep the SH bands of ordinary models
+/// and the base colour of fixed-rig ones (whose bands other viewers would
+/// take for view-dependent colour).
 pub fn write_splats(path: &Path, s: &Splats) -> Result<(), SplatError> {
     s.validate()?;
-    let bytes = match ModelFormat::of(path)? {
+    let format = ModelFormat::of(path)?;
+    let keeps_bands = match format {
+        ModelFormat::Ply => true,
+        ModelFormat::DotSplat => false,
+        _ => s.appearance == crate::raster::Appearance::ViewDirection,
+    };
+    if s.sh_degree > 0 && !keeps_bands {
+        tracing::warn!(
+            "{}: {} keeps the base colour of this model only; SH bands 1-{} are not written",
+            path.display(),
+            format.name(),
+            s.sh_degree
+        );
+    }
+    let bytes = match format {
         ModelFormat::Ply => omniscan_core::ply::to_binary_le(&splats_to_ply(s)),
-        ModelFormat::DotSplat => {
-            if s.sh_degree > 0 {
-                tracing::warn!(
-                    "{}: .splat keeps the base colour only; SH bands 1-{} are not written",
-                    path.display(),
-                    s.sh_degree
-                );
-            }
-            to_dot_splat(s)
+        ModelFormat::CompressedPly => {
+            return Err(SplatError::file(
+                path,
+                "omniscan reads PlayCanvas' compressed PLY but does not write it: write .spz for a compressed model",
+            ));
         }
+        ModelFormat::DotSplat => to_dot_splat(s),
+        ModelFormat::Spz => crate::spz::to_spz(s, crate::spz::SpzVersion::V4),
+        ModelFormat::Glb => crate::glb::to_glb(s),
     };
     omniscan_core::io::write_atomic(path, &bytes)?;
     Ok(())
@@ -404,14 +450,20 @@ mod tests {
                     <= 0.5 / 255.0 + 1e-6
             );
         }
-        for name in ["m.spz", "m"] {
+        for name in ["m.ksplat", "m"] {
             let error = write_splats(&dir.path().join(name), &s)
                 .unwrap_err()
                 .to_string();
-            assert!(
-                error.contains("omniscan reads and writes .ply (3DGS PLY) and .splat"),
-                "{error}"
-            );
+            assert!(error.contains(SUPPORTED), "{error}");
+        }
+        let error = write_splats(&dir.path().join("m.compressed.ply"), &s)
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("does not write it"), "{error}");
+        // Every written format reads back by its extension.
+        for name in ["m.spz", "m.glb"] {
+            write_splats(&dir.path().join(name), &s).unwrap();
+            assert_eq!(read_splats(&dir.path().join(name)).unwrap().len(), s.len());
         }
         std::fs::write(dir.path().join("bad.splat"), [0u8; 33]).unwrap();
         let error = read_splats(&dir.path().join("bad.splat"))

@@ -67,12 +67,15 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// Convert a splat model between formats, chosen by extension: .ply (3DGS PLY, lossless) and .splat (web viewers: base colour only, 8-bit colour, opacity and rotation).
+    /// Convert a splat model between formats, chosen by extension: .ply (3DGS PLY, lossless), .spz (Niantic SPZ, about a tenth of the size), .glb (glTF KHR_gaussian_splatting), .splat (web viewers: base colour only); .compressed.ply (PlayCanvas) is read. docs/formats.md
     Convert {
         /// The model to read.
         input: PathBuf,
         /// The model to write.
         output: PathBuf,
+        /// The SPZ version to write: 4 (current, zstd), 3 or 2 (gzip; for readers from before 2026).
+        #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u32).range(2..=4))]
+        spz_version: u32,
     },
     /// Gripper and object masks for every frame of a capture (kinematic gripper masks, the paper's object pipeline).
     Mask(MaskArgs),
@@ -298,7 +301,11 @@ fn run(cli: Cli) -> Result<()> {
         Command::Demo { out, object, json } => demo(&out, &object, json, &bars),
         Command::Sim(args) => sim(args, &bars),
         Command::Validate { capture, json } => validate(&capture, json),
-        Command::Convert { input, output } => convert(&input, &output),
+        Command::Convert {
+            input,
+            output,
+            spz_version,
+        } => convert(&input, &output, spz_version),
         Command::Mask(args) => mask(args, &bars),
         Command::ExportNerfstudio {
             capture,
@@ -521,12 +528,23 @@ fn print_evaluation(e: &omniscan_splat::evaluation::Evaluation) {
     );
 }
 
-fn convert(input: &std::path::Path, output: &std::path::Path) -> Result<()> {
+fn convert(input: &std::path::Path, output: &std::path::Path, spz_version: u32) -> Result<()> {
     use omniscan_splat::ply::{ModelFormat, read_splats, write_splats};
+    use omniscan_splat::spz::SpzVersion;
     // Refuse an unknown output format before reading the input.
     let format = ModelFormat::of(output)?;
     let model = read_splats(input)?;
-    write_splats(output, &model)?;
+    let version = match spz_version {
+        2 => SpzVersion::V2,
+        3 => SpzVersion::V3,
+        _ => SpzVersion::V4,
+    };
+    if format == ModelFormat::Spz && version != SpzVersion::V4 {
+        let bytes = omniscan_splat::spz::to_spz(&model, version);
+        omniscan_core::io::write_atomic(output, &bytes)?;
+    } else {
+        write_splats(output, &model)?;
+    }
     println!(
         "wrote {} splats to {} ({})",
         model.len(),

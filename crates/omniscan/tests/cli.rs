@@ -1878,10 +1878,10 @@ fn convert_chooses_formats_by_extension() {
     let out = omniscan(&[
         "convert",
         ply.to_str().unwrap(),
-        tmp.path().join("m.spz").to_str().unwrap(),
+        tmp.path().join("m.ksplat").to_str().unwrap(),
     ]);
     assert_refused(
         &out,
-        "unknown model format `.spz`: omniscan reads and writes .ply",
+        "unknown model format `.ksplat`: omniscan reads .ply (3DGS PLY), .compressed.ply",
     );
 }
