@@ -42,22 +42,34 @@ pub fn robust_bounds(model: &Splats) -> (Point3<f64>, f64) {
     (Point3::from(centre), radius.sqrt().max(1e-6))
 }
 
+/// Half the horizontal field of view of the orbit's cameras.
+pub const HALF_FOV_DEG: f64 = 25.0;
+
+/// Where the orbit's camera at `azimuth` (radians, from +x towards +y)
+/// stands and looks: 20° above the model's robust centre, at 1.5 times the
+/// distance that fits its radius in the field of view; z is up.
+pub fn orbit_eye(model: &Splats, azimuth: f64) -> (Point3<f64>, Point3<f64>) {
+    let (target, radius) = robust_bounds(model);
+    let distance = radius / HALF_FOV_DEG.to_radians().tan() * 1.5;
+    let elevation = 20f64.to_radians();
+    let eye = target
+        + distance
+            * Vector3::new(
+                elevation.cos() * azimuth.cos(),
+                elevation.cos() * azimuth.sin(),
+                elevation.sin(),
+            );
+    (eye, target)
+}
+
 /// `count` cameras of `width` x `height` pixels orbiting the model.
 pub fn orbit_cameras(model: &Splats, count: usize, width: u32, height: u32) -> Vec<Camera<f32>> {
-    let (target, radius) = robust_bounds(model);
-    let focal = 0.5 * width as f64 / (25f64.to_radians()).tan();
-    let distance = radius / (25f64.to_radians()).tan() * 1.5;
+    let focal = 0.5 * width as f64 / HALF_FOV_DEG.to_radians().tan();
     (0..count.max(1))
         .map(|i| {
             let azimuth = std::f64::consts::TAU * i as f64 / count.max(1) as f64;
-            let elevation = 20f64.to_radians();
-            let eye = target
-                + distance
-                    * Vector3::new(
-                        elevation.cos() * azimuth.cos(),
-                        elevation.cos() * azimuth.sin(),
-                        elevation.sin(),
-                    );
+            let (eye, target) = orbit_eye(model, azimuth);
+            let distance = (eye - target).norm();
             let camera_to_world = look_at(&eye, &target, &Vector3::z());
             let intrinsics = omniscan_core::Intrinsics {
                 width,

@@ -67,6 +67,18 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Write one HTML file that shows splat models in 3D in any browser, offline (orbit, pan, zoom; several models side by side or one at a time). docs/view.md
+    View {
+        /// The models to show (any format `convert` reads).
+        #[arg(required = true)]
+        models: Vec<PathBuf>,
+        /// The page to write.
+        #[arg(long, default_value = "view.html")]
+        out: PathBuf,
+        /// A name per model for its button (default: the file names).
+        #[arg(long = "name")]
+        names: Vec<String>,
+    },
     /// Convert a splat model between formats, chosen by extension: .ply (3DGS PLY, lossless), .spz (Niantic SPZ, about a tenth of the size), .glb (glTF KHR_gaussian_splatting), .splat (web viewers: base colour only); .compressed.ply (PlayCanvas) is read. docs/formats.md
     Convert {
         /// The model to read.
@@ -301,6 +313,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Demo { out, object, json } => demo(&out, &object, json, &bars),
         Command::Sim(args) => sim(args, &bars),
         Command::Validate { capture, json } => validate(&capture, json),
+        Command::View { models, out, names } => view(&models, &out, &names),
         Command::Convert {
             input,
             output,
@@ -526,6 +539,63 @@ fn print_evaluation(e: &omniscan_splat::evaluation::Evaluation) {
             _ => "LPIPS not computed (no network given: --lpips FILE.onnx)".into(),
         }
     );
+}
+
+fn view(models: &[PathBuf], out: &std::path::Path, names: &[String]) -> Result<()> {
+    if !names.is_empty() && names.len() != models.len() {
+        bail!(
+            "{} --name for {} models: give one per model, or none",
+            names.len(),
+            models.len()
+        );
+    }
+    if out
+        .extension()
+        .is_none_or(|e| !e.eq_ignore_ascii_case("html"))
+    {
+        bail!(
+            "{}: the viewer is an HTML page; name it *.html",
+            out.display()
+        );
+    }
+    let loaded: Vec<omniscan_splat::Splats> = models
+        .iter()
+        .map(|m| omniscan_splat::ply::read_splats(m))
+        .collect::<Result<_, _>>()?;
+    let viewer_models: Vec<omniscan_view::ViewerModel> = loaded
+        .iter()
+        .zip(models)
+        .enumerate()
+        .map(|(i, (splats, path))| omniscan_view::ViewerModel {
+            name: names.get(i).cloned().unwrap_or_else(|| {
+                path.file_name().map_or_else(
+                    || path.display().to_string(),
+                    |n| n.to_string_lossy().into_owned(),
+                )
+            }),
+            splats,
+            markers: Vec::new(),
+        })
+        .collect();
+    let title = format!(
+        "omniscan: {}",
+        viewer_models
+            .iter()
+            .map(|m| m.name.as_str())
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    omniscan_view::write_view(out, &title, &viewer_models)?;
+    let splats: usize = loaded.iter().map(|m| m.len()).sum();
+    println!(
+        "wrote {} ({} models, {splats} splats, {:.1} MB): open it in a browser",
+        out.display(),
+        loaded.len(),
+        std::fs::metadata(out)
+            .map(|m| m.len() as f64 / 1e6)
+            .unwrap_or(0.0)
+    );
+    Ok(())
 }
 
 fn convert(input: &std::path::Path, output: &std::path::Path, spz_version: u32) -> Result<()> {
