@@ -180,6 +180,20 @@ fn write_png(
     })
 }
 
+/// An RGB image as PNG bytes (for pages that carry their pictures inside).
+pub fn rgb_png_bytes(image: &RgbImage) -> Vec<u8> {
+    let mut out = Vec::new();
+    PngEncoder::new_with_quality(&mut out, CompressionType::Fast, FilterType::Adaptive)
+        .write_image(
+            &image.data,
+            image.width,
+            image.height,
+            ExtendedColorType::Rgb8,
+        )
+        .expect("encoding a well-formed RGB image to memory cannot fail");
+    out
+}
+
 /// Writes an RGB PNG atomically.
 pub fn write_rgb(path: &Path, image: &RgbImage) -> Result<()> {
     write_png(

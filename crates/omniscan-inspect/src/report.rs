@@ -368,10 +368,53 @@ pub fn cloud_picture(cloud: &PointCloud, size: u32) -> RgbImage {
 }
 
 fn escape(text: &str) -> String {
-    text.replace('&', "&amp;")
-        .replace('<', "&lt;")
-        .replace('>', "&gt;")
-        .replace('"', "&quot;")
+    omniscan_view::escape_html(text)
+}
+
+/// The copies in 3D, aligned onto the first, one at a time or side by
+/// side, with their significant regions as markers (red: geometric, amber:
+/// visual) labelled as in the table below.
+fn viewer_section(
+    inspection: &Inspection,
+    paths: &[PathBuf],
+    settings: &InspectSettings,
+) -> Result<String, InspectError> {
+    let mut aligned = Vec::with_capacity(paths.len());
+    for (path, alignment) in paths.iter().zip(&inspection.alignments) {
+        let model = omniscan_splat::ply::read_splats(path)
+            .and_then(|m| m.transformed(&alignment.transform, 1.0))
+            .map_err(|e| InspectError::file(path, e.to_string()))?;
+        aligned.push(model);
+    }
+    let mm = settings.units_per_metre / 1000.0;
+    let models: Vec<omniscan_view::ViewerModel> = aligned
+        .iter()
+        .enumerate()
+        .map(|(i, splats)| omniscan_view::ViewerModel {
+            name: name(paths, i),
+            splats,
+            markers: significant_regions(inspection, i)
+                .into_iter()
+                .enumerate()
+                .map(|(k, r)| omniscan_view::Marker {
+                    label: format!("{:?} {} ({:.1} mm²)", r.kind, k + 1, r.area_mm2),
+                    position: r.centroid.map(|v| v as f32),
+                    radius: ((0.5 * r.extent_mm).max(1.0) * mm) as f32,
+                    colour: match r.kind {
+                        crate::verdict::Kind::Geometric => [230, 40, 40],
+                        _ => [255, 176, 0],
+                    },
+                })
+                .collect(),
+        })
+        .collect();
+    let viewer = omniscan_view::viewer_html(&models)
+        .map_err(|e| InspectError::file(&paths[0], e.to_string()))?;
+    Ok(format!(
+        "<h2>The copies in 3D</h2><p>Aligned onto {}; the buttons show one copy or all side by side, \
+         the markers the significant regions.</p>{viewer}",
+        escape(&name(paths, 0))
+    ))
 }
 
 /// Writes every output into `out`; returns the verdict file's path.
@@ -449,7 +492,7 @@ pub fn write_report(
          <style>body{{font-family:sans-serif;margin:2em;max-width:1200px}}\
          table{{border-collapse:collapse}}td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}\
          th{{background:#eee}}img{{max-width:100%;image-rendering:pixelated}}\
-         .verdict{{font-size:1.4em;padding:0.6em;background:{}}}</style></head><body>\
+         .verdict{{font-size:1.4em;padding:0.6em;background:{}}}#omniscan-viewer{{height:520px}}</style></head><body>\
          <h1>omniscan inspection</h1><p class=\"verdict\">",
         if v.defective.is_some() {
             "#fdd"
@@ -473,7 +516,9 @@ pub fn write_report(
             html.push_str("No defective model: every copy agrees within the noise of good copies.")
         }
     }
-    html.push_str("</p><h2>Regions</h2><table><tr><th>model</th><th>kind</th><th>centroid (model units)</th>\
+    html.push_str("</p>");
+    html.push_str(&viewer_section(inspection, paths, settings)?);
+    html.push_str("<h2>Regions</h2><table><tr><th>model</th><th>kind</th><th>centroid (model units)</th>\
                    <th>extent mm</th><th>area mm²</th><th>noise floor mm²</th><th>standing out</th><th>mean difference</th><th>significant</th></tr>");
     for r in &v.regions {
         let _ = write!(

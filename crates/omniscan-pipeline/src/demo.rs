@@ -59,6 +59,10 @@ pub struct DemoReport {
     pub twin: DemoTwin,
     /// Seconds the simulation took.
     pub seconds: f64,
+    /// The twin in the browser viewer (one HTML file).
+    pub view_page: PathBuf,
+    /// This report as a page: the figures, pictures and the twin in 3D.
+    pub report_page: PathBuf,
 }
 
 /// Runs the demo on `object` (a `builtin:NAME`) into `out`.
@@ -128,7 +132,7 @@ pub fn demo(object: &str, out: &Path, progress: &dyn Progress) -> Result<DemoRep
         (DEMO_STEPS, DEMO_DOWNSCALE, false),
         progress,
     )?;
-    Ok(DemoReport {
+    let mut report = DemoReport {
         capture: capture_dir,
         summary,
         masks,
@@ -136,7 +140,22 @@ pub fn demo(object: &str, out: &Path, progress: &dyn Progress) -> Result<DemoRep
         nerfstudio: export.transforms,
         twin,
         seconds: simulated.seconds,
-    })
+        view_page: out.join("view.html"),
+        report_page: out.join("report.html"),
+    };
+    progress.note("    writing view.html (the twin in 3D) and report.html");
+    let model = omniscan_splat::ply::read_splats(&report.twin.model)?;
+    omniscan_view::write_view(
+        &report.view_page,
+        "omniscan demo: the first twin",
+        &[omniscan_view::ViewerModel {
+            name: "twin".into(),
+            splats: &model,
+            markers: Vec::new(),
+        }],
+    )?;
+    report.report_page = crate::reports::write_demo_report(out, &report)?;
+    Ok(report)
 }
 
 fn mask(capture_dir: &Path, progress: &dyn Progress) -> Result<DemoMasks> {

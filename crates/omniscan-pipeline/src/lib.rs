@@ -44,6 +44,7 @@ pub mod mask;
 pub mod memory;
 pub mod progress;
 pub mod render;
+pub mod reports;
 pub mod settings;
 pub mod simulate;
 pub mod train;

@@ -309,6 +309,7 @@ pub fn twin(
         alignment_error,
     };
     omniscan_core::io::write_json_atomic(&out.join("summary.json"), &report)?;
+    crate::reports::write_twin_report(out, &report, settings)?;
     Ok(report)
 }
 

@@ -351,12 +351,25 @@ fn demo(out: &std::path::Path, object: &str, json: bool, bars: &Bars) -> Result<
         report.twin.splats,
         report.twin.test.psnr_masked.unwrap_or(f64::NAN)
     );
+    println!("open in a browser:");
     println!(
-        "next: omniscan twin {} --out {} for the full twin; omniscan render {} --out {}",
+        "  {}   the twin in 3D (drag to orbit)",
+        report.view_page.display()
+    );
+    println!(
+        "  {}   what each step did, with pictures",
+        report.report_page.display()
+    );
+    println!("next:");
+    println!(
+        "  omniscan twin {} --out {}   the full twin (about 5 minutes), with its own report.html",
         report.capture.display(),
-        out.join("full-twin").display(),
+        out.join("full-twin").display()
+    );
+    println!(
+        "  omniscan convert {} {}   a compact copy for other viewers (SPZ, .glb)",
         report.twin.model.display(),
-        out.join("renders").display()
+        out.join("twin.spz").display()
     );
     Ok(())
 }
