@@ -12,6 +12,8 @@
 //! Models travel inside the page as SPZ version 3 ([`omniscan_splat::spz`]),
 //! the newest version Spark reads, in base64.
 
+pub mod browser;
+
 use std::io::Read;
 use std::path::Path;
 

@@ -8,16 +8,11 @@
 //! renderer puts it from the same camera (IoU ≥ 0.9; a model turned or
 //! mirrored by an axis mistake scores far lower), and markers drawn.
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::path::Path;
 
 use omniscan_splat::Splats;
 use omniscan_splat::orbit::orbit_cameras;
 use omniscan_view::{Marker, ViewerModel};
-
-fn repository() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
 
 /// A model with no symmetry an axis mistake could hide behind: an L of
 /// splats (long along x, short up z) with a ball off one end along y, in
@@ -62,43 +57,12 @@ pub fn asymmetric_model() -> Splats {
     s
 }
 
-#[derive(serde::Deserialize, Debug)]
-#[serde(rename_all = "camelCase")]
-struct Shot {
-    console_errors: Vec<String>,
-    page_errors: Vec<String>,
-    external_requests: Vec<String>,
-    loaded: bool,
-    error: Option<String>,
-}
-
-/// Screenshots `page` with `options` (see screenshot.mjs) into `out`.
-fn screenshot(page: &Path, out: &Path, options: &[&str]) -> (Shot, image::RgbImage) {
-    let script = repository().join("web/tests/screenshot.mjs");
-    let output = Command::new("node")
-        .arg(&script)
-        .arg(page)
-        .arg(out)
-        .args(options)
-        .current_dir(repository().join("web"))
-        .output()
-        .expect("node runs");
-    assert!(
-        output.status.success(),
-        "screenshot.mjs failed: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    let shot: Shot = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
-    assert!(shot.loaded, "the viewer did not load: {:?}", shot.error);
-    assert!(shot.console_errors.is_empty(), "{:?}", shot.console_errors);
-    assert!(shot.page_errors.is_empty(), "{:?}", shot.page_errors);
-    assert!(
-        shot.external_requests.is_empty(),
-        "{:?}",
-        shot.external_requests
-    );
-    (shot, image::open(out).unwrap().to_rgb8())
+/// Screenshots `page` with `options` into `out`, asserting a clean load.
+fn screenshot(page: &Path, out: &Path, options: &[&str]) -> image::RgbImage {
+    let shot = omniscan_view::browser::screenshot(page, out, options).unwrap();
+    shot.clean().unwrap();
+    assert!(shot.frames_drawn > 0);
+    image::open(out).unwrap().to_rgb8()
 }
 
 const MAGENTA: [f32; 3] = [1.0, 0.0, 1.0];
@@ -136,7 +100,7 @@ fn the_viewer_draws_the_model_where_the_cpu_renderer_does() {
         }],
     )
     .unwrap();
-    let (_, shot) = screenshot(
+    let shot = screenshot(
         &page,
         &tmp.path().join("shot.png"),
         &["--background", "1,0,1"],
@@ -214,8 +178,8 @@ fn markers_are_drawn_and_models_toggle() {
     )
     .unwrap();
     let options = |markers: &'static str| vec!["--show", "0", "--markers", markers];
-    let (_, on) = screenshot(&page, &tmp.path().join("on.png"), &options("on"));
-    let (_, off) = screenshot(&page, &tmp.path().join("off.png"), &options("off"));
+    let on = screenshot(&page, &tmp.path().join("on.png"), &options("on"));
+    let off = screenshot(&page, &tmp.path().join("off.png"), &options("off"));
     let green = |img: &image::RgbImage| {
         img.pixels()
             .filter(|p| p.0[1] > 200 && p.0[0] < 80 && p.0[2] < 80)
@@ -228,7 +192,7 @@ fn markers_are_drawn_and_models_toggle() {
     );
     assert_eq!(green(&off), 0);
     // Side by side, there is a model in the left third and in the right.
-    let (_, both) = screenshot(
+    let both = screenshot(
         &page,
         &tmp.path().join("both.png"),
         &["--show", "0,1", "--markers", "off", "--background", "1,0,1"],
