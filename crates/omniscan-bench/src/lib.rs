@@ -3,6 +3,7 @@
 //! Each benchmark measures its baseline in the same run where it claims a
 //! ratio (Open3D for registration).
 
+mod formats;
 mod inspect;
 mod mask;
 mod registration;
@@ -26,6 +27,8 @@ pub enum BenchCommand {
     Scans(scans::BenchArgs),
     /// Rasterizer time per view: CPU forward and forward+backward, GPU forward, on random scenes or models.
     Splat(splat::BenchArgs),
+    /// What each model format keeps: renders after a round trip through SPZ, glb, .splat (and splat-transform's files) against the original's, file sizes.
+    Formats(formats::BenchArgs),
     /// Time a full simulated capture: both arms' trajectories plus the empty pass.
     Sim(sim::BenchArgs),
 }
@@ -39,6 +42,7 @@ pub fn run(command: BenchCommand) -> Result<()> {
         BenchCommand::Scans(args) => scans::bench(args),
         BenchCommand::Splat(args) => splat::bench(args),
         BenchCommand::Sim(args) => sim::bench(args),
+        BenchCommand::Formats(args) => formats::bench(args),
     }
 }
 

@@ -45,7 +45,9 @@ fn splat_transform(input: &Path, output: &Path, flags: &[&str]) {
 fn model() -> Splats {
     let mut state = 12345u64;
     let mut next = || {
-        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         ((state >> 33) as f64 / (1u64 << 31) as f64) as f32
     };
     let mut s = Splats {
@@ -95,7 +97,11 @@ fn assert_close(original: &Splats, back: &Splats, t: &Tolerance, what: &str) {
     let nearest = |p: &[f32; 3]| {
         (0..original.len())
             .min_by(|&a, &b| {
-                let d = |i: usize| (0..3).map(|k| (original.means[i][k] - p[k]).powi(2)).sum::<f32>();
+                let d = |i: usize| {
+                    (0..3)
+                        .map(|k| (original.means[i][k] - p[k]).powi(2))
+                        .sum::<f32>()
+                };
                 d(a).total_cmp(&d(b))
             })
             .unwrap()
@@ -106,13 +112,22 @@ fn assert_close(original: &Splats, back: &Splats, t: &Tolerance, what: &str) {
     for j in 0..back.len() {
         let i = nearest(&back.means[j]);
         for a in 0..3 {
-            assert!((back.means[j][a] - original.means[i][a]).abs() <= t.position, "{what}: position of {i}");
+            assert!(
+                (back.means[j][a] - original.means[i][a]).abs() <= t.position,
+                "{what}: position of {i}"
+            );
         }
         let (ca, cb) = (covariance(original, i), covariance(back, j));
         let relative = (ca - cb).norm() / ca.norm();
-        assert!(relative <= t.covariance, "{what}: covariance of {i} off by {relative:.4}");
+        assert!(
+            relative <= t.covariance,
+            "{what}: covariance of {i} off by {relative:.4}"
+        );
         let opacity = (sigmoid(back.opacity_logits[j]) - sigmoid(original.opacity_logits[i])).abs();
-        assert!(opacity <= t.opacity, "{what}: opacity of {i} off by {opacity}");
+        assert!(
+            opacity <= t.opacity,
+            "{what}: opacity of {i} off by {opacity}"
+        );
         for c in 0..kb {
             for ch in 0..3 {
                 let error = (back.sh[j * kb + c][ch] - original.sh[i * k + c][ch]).abs();
@@ -160,7 +175,11 @@ fn our_spz_reads_in_the_reference_library_in_every_version() {
         // Version 2's 8-bit rotations are coarse (up to ~7° where w is
         // small); 3 and 4 keep 10 bits of the smallest three.
         let loose = Tolerance {
-            covariance: if version == SpzVersion::V2 { 0.4 } else { SPZ.covariance },
+            covariance: if version == SpzVersion::V2 {
+                0.4
+            } else {
+                SPZ.covariance
+            },
             ..SPZ
         };
         assert_close(&original, &theirs, &loose, &what);
@@ -182,9 +201,25 @@ fn we_read_what_splat_transform_writes() {
             &[],
             // 11/10/11 bits of each 256-splat chunk's range; 8-bit colour
             // and SH over ±4.
-            Tolerance { position: 1e-4, covariance: 0.2, opacity: 0.5 / 255.0 + 1e-4, dc: 0.5 / (255.0 * 0.2821) * 2.0 + 0.01, sh: 8.0 / 256.0 + 1e-4 },
+            Tolerance {
+                position: 1e-4,
+                covariance: 0.2,
+                opacity: 0.5 / 255.0 + 1e-4,
+                dc: 0.5 / (255.0 * 0.2821) * 2.0 + 0.01,
+                sh: 8.0 / 256.0 + 1e-4,
+            },
         ),
-        ("model.glb", &[], Tolerance { position: 1e-6, covariance: 1e-4, opacity: 1e-6, dc: 1e-6, sh: 1e-6 }),
+        (
+            "model.glb",
+            &[],
+            Tolerance {
+                position: 1e-6,
+                covariance: 1e-4,
+                opacity: 1e-6,
+                dc: 1e-6,
+                sh: 1e-6,
+            },
+        ),
     ];
     for (name, flags, tolerance) in cases {
         let file = tmp.path().join(name);
