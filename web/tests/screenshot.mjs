@@ -33,6 +33,13 @@ try {
   });
   const page = await context.newPage();
   page.on("console", (m) => m.type() === "error" && report.consoleErrors.push(m.text()));
+  // Long tasks (over 50 ms on the main thread) are what freezes a page.
+  await page.addInitScript(() => {
+    window.__longTasks = [];
+    new PerformanceObserver((list) => {
+      for (const e of list.getEntries()) window.__longTasks.push(e.duration);
+    }).observe({ type: "longtask", buffered: true });
+  });
   page.on("pageerror", (e) => report.pageErrors.push(String(e)));
   await page.route("**/*", (route) => {
     const url = route.request().url();
@@ -40,8 +47,10 @@ try {
     report.externalRequests.push(url);
     return route.abort();
   });
+  const start = Date.now();
   await page.goto("file://" + path.resolve(page_file));
-  await page.waitForFunction(() => window.omniscanViewer && (window.omniscanViewer.loaded || window.omniscanViewer.error), null, { timeout: 120000 });
+  await page.waitForFunction(() => window.omniscanViewer && (window.omniscanViewer.loaded || window.omniscanViewer.error), null, { timeout: 300000 });
+  report.loadMs = Date.now() - start;
   await page.evaluate(async (o) => {
     const v = window.omniscanViewer;
     if (v.error) return;
@@ -56,11 +65,19 @@ try {
       wait();
     });
   }, options);
-  await page.locator("#omniscan-viewer .ov-canvas canvas").screenshot({ path: out });
+  // A clip of the page rather than the element: the element's screenshot
+  // waits for it to be "stable", which a canvas that redraws every frame
+  // is not when frames are slow (a million splats on SwiftShader).
+  const box = await page.locator("#omniscan-viewer .ov-canvas canvas").boundingBox();
+  await page.screenshot({ path: out, clip: box, timeout: 300000 });
   Object.assign(report, await page.evaluate(() => {
     const v = window.omniscanViewer;
     const c = document.querySelector("#omniscan-viewer .ov-canvas canvas");
-    return { loaded: v.loaded, error: v.error, framesDrawn: v.framesDrawn, canvas: [c.width, c.height] };
+    const tasks = window.__longTasks || [];
+    return {
+      loaded: v.loaded, error: v.error, framesDrawn: v.framesDrawn, canvas: [c.width, c.height],
+      longTasks: tasks.length, longestTaskMs: tasks.length ? Math.max(...tasks) : 0,
+    };
   }));
 } finally {
   await browser.close();

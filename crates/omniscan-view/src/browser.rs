@@ -20,6 +20,12 @@ pub struct Shot {
     pub loaded: bool,
     pub error: Option<String>,
     pub frames_drawn: u64,
+    /// From navigation to the models shown, milliseconds.
+    pub load_ms: f64,
+    /// Main-thread tasks over 50 ms (what makes a page freeze), and the
+    /// longest of them.
+    pub long_tasks: u64,
+    pub longest_task_ms: f64,
 }
 
 impl Shot {
