@@ -45,6 +45,8 @@ __all__ = [
     "render",
     "inspect",
     "make_copy",
+    "convert",
+    "view",
     "read_splats",
     "write_splats",
     "read_cloud",
@@ -199,3 +201,15 @@ def make_copy(model: PathLike, *, out: PathLike, progress: Any = None, **setting
     """Writes a copy of ``model`` as another scan of the part would give it,
     with a planted defect when ``defect=`` names one."""
     return _run("make_copy", [model, out], settings, progress)
+
+
+def convert(model: PathLike, *, out: PathLike, progress: Any = None, **settings: Any) -> Report:
+    """Writes ``model`` to ``out`` in the format its extension names: .ply,
+    .spz, .glb or .splat (.compressed.ply is read too)."""
+    return _run("convert", [model, out], settings, progress)
+
+
+def view(models: Iterable[PathLike], *, out: PathLike, progress: Any = None, **settings: Any) -> Report:
+    """Writes ``out``, one HTML file that shows ``models`` in 3D in any
+    browser, offline."""
+    return _run("view", [out, *models], settings, progress)

@@ -41,3 +41,9 @@ def inspect(models: Iterable[PathLike], *, out: PathLike, arm: str = 'both', bac
 
 def make_copy(model: PathLike, *, out: PathLike, defect: Optional[Any] = None, keep_pose: bool = False, noise_mm: float = 0.3, seed: int = 0, size_mm: float = 6.0, units_per_metre: float = 1.0, progress: Any = None) -> Report:
     """Writes a copy of ``model`` as another scan of the part would give it, ..."""
+
+def convert(model: PathLike, *, out: PathLike, spz_version: int = 4, progress: Any = None) -> Report:
+    """Writes ``model`` to ``out`` in the format its extension names: .ply, ..."""
+
+def view(models: Iterable[PathLike], *, out: PathLike, names: Sequence[Any] = [], title: Optional[Any] = None, progress: Any = None) -> Report:
+    """Writes ``out``, one HTML file that shows ``models`` in 3D in any ..."""

@@ -123,6 +123,21 @@ def test_splat_arrays_are_the_ply_files_contents(capture, tmp_path):
         omniscan.write_splats(tmp_path / "nan.ply", splats)
 
 
+def test_a_model_converts_and_shows_in_a_page(capture, tmp_path):
+    model = tmp_path / "m.ply"
+    omniscan.train(capture, out=model, steps=20, backend="cpu")
+    report = omniscan.convert(model, out=tmp_path / "m.spz", spz_version=3)
+    assert report.format == "SPZ" and report.splats == len(omniscan.read_splats(model))
+    back = omniscan.read_splats(tmp_path / "m.spz")
+    np.testing.assert_allclose(back.means, omniscan.read_splats(model).means, atol=2.5e-4)
+    page = omniscan.view([model, tmp_path / "m.spz"], out=tmp_path / "v.html", names=["ply", "spz"])
+    assert page.models == 2
+    html = (tmp_path / "v.html").read_text()
+    assert "omniscan-viewer-config" in html and ">spz</button>" in html
+    with pytest.raises(omniscan.InputError, match="unknown model format"):
+        omniscan.convert(model, out=tmp_path / "m.xyz")
+
+
 def test_point_clouds_round_trip(tmp_path):
     rng = np.random.default_rng(1)
     cloud = omniscan.PointCloud(rng.normal(size=(50, 3)), rng.random((50, 3)).astype(np.float32), None)

@@ -46,6 +46,7 @@ pub mod progress;
 pub mod render;
 pub mod reports;
 pub mod settings;
+pub mod share;
 pub mod simulate;
 pub mod train;
 pub mod twin;

@@ -64,7 +64,7 @@ impl Progress for PyProgress {
 }
 
 /// The stages the bindings run, by the Python function's name.
-const STAGES: [&str; 9] = [
+const STAGES: [&str; 11] = [
     "simulate",
     "mask",
     "train",
@@ -74,6 +74,8 @@ const STAGES: [&str; 9] = [
     "render",
     "inspect",
     "make_copy",
+    "convert",
+    "view",
 ];
 
 /// A keyword argument the stage's settings cannot take.
@@ -120,6 +122,8 @@ fn default_json(stage: &str) -> Result<serde_json::Value> {
         "render" => json::<render::RenderSettings>(),
         "inspect" => json::<inspect::InspectionSettings>(),
         "make_copy" => json::<inspect::MakeCopySettings>(),
+        "convert" => json::<share::ConvertSettings>(),
+        "view" => json::<share::ViewSettings>(),
         other => bail!("no stage `{other}`: the stages are {}", STAGES.join(", ")),
     }
 }
@@ -135,10 +139,10 @@ fn run(
     let wanted = match stage {
         "simulate" | "mask" => 1,
         "align" => 3,
-        "inspect" => 2,
         _ => 2,
     };
-    if paths.len() < wanted || (stage != "inspect" && paths.len() != wanted) {
+    let any_number = matches!(stage, "inspect" | "view");
+    if paths.len() < wanted || (!any_number && paths.len() != wanted) {
         bail!("{stage} takes {wanted} paths, got {}", paths.len());
     }
     let p = |i: usize| paths[i].as_path();
@@ -164,6 +168,8 @@ fn run(
             progress,
         )?),
         "make_copy" => to_json(inspect::make_copy(p(0), p(1), &settings(given)?)?),
+        "convert" => to_json(share::convert(p(0), p(1), &settings(given)?)?),
+        "view" => to_json(share::view(&paths[1..], p(0), &settings(given)?)?),
         other => bail!("no stage `{other}`: the stages are {}", STAGES.join(", ")),
     }
 }

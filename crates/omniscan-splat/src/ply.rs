@@ -101,7 +101,7 @@ pub fn read_splats(path: &Path) -> Result<Splats, SplatError> {
         ModelFormat::Spz => crate::spz::from_spz(&bytes),
         ModelFormat::Glb => crate::glb::from_glb(&bytes),
     };
-    splats.map_err(|m| SplatError::file(path, format!("{}: {m}", format.name())))
+    splats.map_err(|m| SplatError::file(path, m))
 }
 
 /// Interprets a parsed PLY as a splat model.

@@ -75,9 +75,11 @@ enum Command {
         /// The page to write.
         #[arg(long, default_value = "view.html")]
         out: PathBuf,
-        /// A name per model for its button (default: the file names).
-        #[arg(long = "name")]
-        names: Vec<String>,
+        #[command(flatten)]
+        settings: omniscan_pipeline::share::ViewSettings,
+        /// Print the report as JSON.
+        #[arg(long)]
+        json: bool,
     },
     /// Convert a splat model between formats, chosen by extension: .ply (3DGS PLY, lossless), .spz (Niantic SPZ, about a tenth of the size), .glb (glTF KHR_gaussian_splatting), .splat (web viewers: base colour only); .compressed.ply (PlayCanvas) is read. docs/formats.md
     Convert {
@@ -85,9 +87,11 @@ enum Command {
         input: PathBuf,
         /// The model to write.
         output: PathBuf,
-        /// The SPZ version to write: 4 (current, zstd), 3 or 2 (gzip; for readers from before 2026).
-        #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u32).range(2..=4))]
-        spz_version: u32,
+        #[command(flatten)]
+        settings: omniscan_pipeline::share::ConvertSettings,
+        /// Print the report as JSON.
+        #[arg(long)]
+        json: bool,
     },
     /// Gripper and object masks for every frame of a capture (kinematic gripper masks, the paper's object pipeline).
     Mask(MaskArgs),
@@ -313,12 +317,18 @@ fn run(cli: Cli) -> Result<()> {
         Command::Demo { out, object, json } => demo(&out, &object, json, &bars),
         Command::Sim(args) => sim(args, &bars),
         Command::Validate { capture, json } => validate(&capture, json),
-        Command::View { models, out, names } => view(&models, &out, &names),
+        Command::View {
+            models,
+            out,
+            settings,
+            json,
+        } => view(&models, &out, &settings, json),
         Command::Convert {
             input,
             output,
-            spz_version,
-        } => convert(&input, &output, spz_version),
+            settings,
+            json,
+        } => convert(&input, &output, &settings, json),
         Command::Mask(args) => mask(args, &bars),
         Command::ExportNerfstudio {
             capture,
@@ -554,85 +564,42 @@ fn print_evaluation(e: &omniscan_splat::evaluation::Evaluation) {
     );
 }
 
-fn view(models: &[PathBuf], out: &std::path::Path, names: &[String]) -> Result<()> {
-    if !names.is_empty() && names.len() != models.len() {
-        bail!(
-            "{} --name for {} models: give one per model, or none",
-            names.len(),
-            models.len()
-        );
+fn view(
+    models: &[PathBuf],
+    out: &std::path::Path,
+    settings: &omniscan_pipeline::share::ViewSettings,
+    json: bool,
+) -> Result<()> {
+    let report = omniscan_pipeline::share::view(models, out, settings)?;
+    if json {
+        return print_json(&report);
     }
-    if out
-        .extension()
-        .is_none_or(|e| !e.eq_ignore_ascii_case("html"))
-    {
-        bail!(
-            "{}: the viewer is an HTML page; name it *.html",
-            out.display()
-        );
-    }
-    let loaded: Vec<omniscan_splat::Splats> = models
-        .iter()
-        .map(|m| omniscan_splat::ply::read_splats(m))
-        .collect::<Result<_, _>>()?;
-    let viewer_models: Vec<omniscan_view::ViewerModel> = loaded
-        .iter()
-        .zip(models)
-        .enumerate()
-        .map(|(i, (splats, path))| omniscan_view::ViewerModel {
-            name: names.get(i).cloned().unwrap_or_else(|| {
-                path.file_name().map_or_else(
-                    || path.display().to_string(),
-                    |n| n.to_string_lossy().into_owned(),
-                )
-            }),
-            splats,
-            markers: Vec::new(),
-        })
-        .collect();
-    let title = format!(
-        "omniscan: {}",
-        viewer_models
-            .iter()
-            .map(|m| m.name.as_str())
-            .collect::<Vec<_>>()
-            .join(", ")
-    );
-    omniscan_view::write_view(out, &title, &viewer_models)?;
-    let splats: usize = loaded.iter().map(|m| m.len()).sum();
     println!(
-        "wrote {} ({} models, {splats} splats, {:.1} MB): open it in a browser",
-        out.display(),
-        loaded.len(),
-        std::fs::metadata(out)
-            .map(|m| m.len() as f64 / 1e6)
-            .unwrap_or(0.0)
+        "wrote {} ({} models, {} splats, {:.1} MB): open it in a browser",
+        report.out.display(),
+        report.models,
+        report.splats,
+        report.bytes as f64 / 1e6
     );
     Ok(())
 }
 
-fn convert(input: &std::path::Path, output: &std::path::Path, spz_version: u32) -> Result<()> {
-    use omniscan_splat::ply::{ModelFormat, read_splats, write_splats};
-    use omniscan_splat::spz::SpzVersion;
-    // Refuse an unknown output format before reading the input.
-    let format = ModelFormat::of(output)?;
-    let model = read_splats(input)?;
-    let version = match spz_version {
-        2 => SpzVersion::V2,
-        3 => SpzVersion::V3,
-        _ => SpzVersion::V4,
-    };
-    if format == ModelFormat::Spz && version != SpzVersion::V4 {
-        let bytes = omniscan_splat::spz::to_spz(&model, version);
-        omniscan_core::io::write_atomic(output, &bytes)?;
-    } else {
-        write_splats(output, &model)?;
+fn convert(
+    input: &std::path::Path,
+    output: &std::path::Path,
+    settings: &omniscan_pipeline::share::ConvertSettings,
+    json: bool,
+) -> Result<()> {
+    let report = omniscan_pipeline::share::convert(input, output, settings)?;
+    if json {
+        return print_json(&report);
     }
     println!(
-        "wrote {} splats to {} ({})",
-        model.len(),
-        output.display(),
-        format.name()
+        "wrote {} splats to {} ({}, {:.2} MB)",
+        report.splats,
+        report.output.display(),
+        report.format,
+        report.bytes as f64 / 1e6
     );
     Ok(())
 }

@@ -1847,6 +1847,56 @@ fn gpu_picks_the_adapter_and_names_those_there_are() {
     assert_refused(&out, "--gpu 99 names no adapter; there are: 0: ");
 }
 
+/// Bad models are refused naming the file and the problem, in every format.
+#[test]
+fn convert_refuses_bad_models_naming_the_file_and_the_problem() {
+    let tmp = tempfile::tempdir().unwrap();
+    let splats = omniscan_splat::Splats {
+        means: vec![[0.0; 3], [0.1, 0.0, 0.0]],
+        log_scales: vec![[-3.0; 3]; 2],
+        quats: vec![[1.0, 0.0, 0.0, 0.0]; 2],
+        opacity_logits: vec![1.0, -1.0],
+        sh: vec![[0.2; 3], [-0.2; 3]],
+        ..Default::default()
+    };
+    let ply = tmp.path().join("m.ply");
+    omniscan_splat::ply::write_splats(&ply, &splats).unwrap();
+    let out = tmp.path().join("out.ply");
+    let convert =
+        |input: &Path| omniscan(&["convert", input.to_str().unwrap(), out.to_str().unwrap()]);
+    let write = |name: &str, bytes: &[u8]| {
+        let path = tmp.path().join(name);
+        std::fs::write(&path, bytes).unwrap();
+        path
+    };
+    for extension in ["spz", "glb"] {
+        let whole = tmp.path().join(format!("m.{extension}"));
+        let o = omniscan(&["convert", ply.to_str().unwrap(), whole.to_str().unwrap()]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let bytes = std::fs::read(&whole).unwrap();
+        let cut = write(&format!("cut.{extension}"), &bytes[..bytes.len() - 7]);
+        assert_refused(&convert(&cut), &format!("cut.{extension}: truncated"));
+    }
+    let mut spz = std::fs::read(tmp.path().join("m.spz")).unwrap();
+    spz[4] = 7;
+    assert_refused(
+        &convert(&write("v7.spz", &spz)),
+        "v7.spz: SPZ version 7 is not one omniscan reads (1 to 4)",
+    );
+    let cloud = write(
+        "cloud.ply",
+        b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 0\n",
+    );
+    assert_refused(
+        &convert(&cloud),
+        "cloud.ply: not a 3DGS PLY: no `f_dc_0` property",
+    );
+    assert_refused(
+        &convert(&write("x.spz", b"hello")),
+        "x.spz: not an SPZ file",
+    );
+}
+
 /// `convert` goes by extension both ways; an unknown one names the formats.
 #[test]
 fn convert_chooses_formats_by_extension() {
