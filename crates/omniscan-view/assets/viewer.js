@@ -8,8 +8,20 @@
 // stores RUB axes, so each mesh is turned back by a half turn about x.
 // window.omniscanViewer is the page's interface for tests and scripts:
 // setCamera, setBackground, show, and framesDrawn / ready for "drawn".
-(function () {
+(async function () {
   "use strict";
+  // The library travels gzipped in base64 (a third of its size); the
+  // browser's own DecompressionStream unpacks it into a script element.
+  try {
+    const packed = document.getElementById("omniscan-viewer-lib").textContent.trim();
+    const bytes = Uint8Array.from(atob(packed), (c) => c.charCodeAt(0));
+    const stream = new Blob([bytes]).stream().pipeThrough(new DecompressionStream("gzip"));
+    const script = document.createElement("script");
+    script.textContent = await new Response(stream).text();
+    document.head.appendChild(script);
+  } catch (e) {
+    console.error("omniscan viewer: the library could not be unpacked", e);
+  }
   const lib = window.OmniscanViewerLib;
   const config = JSON.parse(document.getElementById("omniscan-viewer-config").textContent);
   const root = document.getElementById("omniscan-viewer");
