@@ -1,5 +1,6 @@
 //! Fuzzing omniscan's readers: every file format a user hands omniscan
-//! (3DGS and point-cloud PLY, PCD, XYZ, `capture.json`, nerfstudio's
+//! (3DGS and point-cloud PLY, SPZ, glTF splats, PlayCanvas' compressed
+//! PLY, PCD, XYZ, `capture.json`, nerfstudio's
 //! `transforms.json`, `cameras.json`, training checkpoints, PNG) is read
 //! from mutated copies of valid files, and any panic, hang or accepted
 //! file that breaks the reader's own promise (a model that does not pass
@@ -41,6 +42,12 @@ pub enum Target {
     PlySplats,
     /// A `.splat` web-viewer model.
     DotSplat,
+    /// Niantic's SPZ, every version.
+    Spz,
+    /// glTF binary with `KHR_gaussian_splatting`.
+    Glb,
+    /// PlayCanvas' compressed PLY.
+    CompressedPly,
     /// A point cloud in PLY (`omniscan_register::cloud::read_cloud`).
     PlyCloud,
     /// A PCL point cloud, ASCII, binary and compressed.
@@ -60,9 +67,12 @@ pub enum Target {
 }
 
 impl Target {
-    pub const ALL: [Target; 10] = [
+    pub const ALL: [Target; 13] = [
         Target::PlySplats,
         Target::DotSplat,
+        Target::Spz,
+        Target::Glb,
+        Target::CompressedPly,
         Target::PlyCloud,
         Target::Pcd,
         Target::Xyz,
@@ -77,6 +87,9 @@ impl Target {
         match self {
             Target::PlySplats => "ply-splats",
             Target::DotSplat => "dot-splat",
+            Target::Spz => "spz",
+            Target::Glb => "glb",
+            Target::CompressedPly => "compressed-ply",
             Target::PlyCloud => "ply-cloud",
             Target::Pcd => "pcd",
             Target::Xyz => "xyz",
@@ -98,6 +111,9 @@ impl Target {
         match self {
             Target::PlySplats | Target::PlyCloud => "input.ply",
             Target::DotSplat => "input.splat",
+            Target::Spz => "input.spz",
+            Target::Glb => "input.glb",
+            Target::CompressedPly => "input.compressed.ply",
             Target::Pcd => "input.pcd",
             Target::Xyz => "input.xyz",
             Target::Capture => "capture.json",
@@ -122,7 +138,11 @@ pub enum Outcome {
 fn read(target: Target, path: &Path) -> Outcome {
     let refused = |e: &dyn std::fmt::Display| Outcome::Refused(e.to_string());
     match target {
-        Target::PlySplats | Target::DotSplat => match omniscan_splat::ply::read_splats(path) {
+        Target::PlySplats
+        | Target::DotSplat
+        | Target::Spz
+        | Target::Glb
+        | Target::CompressedPly => match omniscan_splat::ply::read_splats(path) {
             Err(e) => refused(&e),
             Ok(splats) => splats_keep_their_promise(&splats, path),
         },

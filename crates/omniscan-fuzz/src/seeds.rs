@@ -20,6 +20,21 @@ pub fn write(target: Target, dir: &Path) -> Result<Vec<Vec<u8>>> {
         Target::DotSplat => [(0, 3), (2, 2)]
             .map(|(degree, n)| omniscan_splat::ply::to_dot_splat(&model(degree, n)))
             .to_vec(),
+        Target::Spz => {
+            use omniscan_splat::spz::{SpzVersion, to_spz};
+            [
+                (0, 3, SpzVersion::V4),
+                (1, 2, SpzVersion::V3),
+                (3, 2, SpzVersion::V2),
+                (2, 1, SpzVersion::V4),
+            ]
+            .map(|(degree, n, version)| to_spz(&model(degree, n), version))
+            .to_vec()
+        }
+        Target::Glb => [(0, 3), (3, 2)]
+            .map(|(degree, n)| omniscan_splat::glb::to_glb(&model(degree, n)))
+            .to_vec(),
+        Target::CompressedPly => vec![compressed_ply()],
         Target::PlyCloud => clouds_ply(dir)?,
         Target::Pcd => pcd(),
         Target::Xyz => vec![
@@ -78,6 +93,86 @@ fn splat_models(dir: &Path) -> Result<Vec<Vec<u8>>> {
             .to_vec(),
     );
     Ok(seeds)
+}
+
+/// A PlayCanvas compressed PLY of three splats in one chunk, with SH of
+/// degree 1 (omniscan writes none; the layout is the reader's).
+fn compressed_ply() -> Vec<u8> {
+    use omniscan_core::ply::{Column, Element, Format, PlyFile, Property, ScalarType};
+    let element =
+        |name: &str, count: usize, columns: Vec<(String, ScalarType, Vec<f64>)>| Element {
+            name: name.into(),
+            count,
+            properties: columns
+                .iter()
+                .map(|(name, scalar, _)| Property {
+                    name: name.clone(),
+                    scalar: *scalar,
+                    list_count: None,
+                })
+                .collect(),
+            columns: columns
+                .into_iter()
+                .map(|(_, _, v)| Column::Scalar(v))
+                .collect(),
+        };
+    let chunk_names = [
+        "min_x",
+        "min_y",
+        "min_z",
+        "max_x",
+        "max_y",
+        "max_z",
+        "min_scale_x",
+        "min_scale_y",
+        "min_scale_z",
+        "max_scale_x",
+        "max_scale_y",
+        "max_scale_z",
+    ];
+    let chunk_values = [
+        -0.1, -0.1, -0.1, 0.1, 0.1, 0.1, -6.0, -6.0, -6.0, -3.0, -3.0, -3.0,
+    ];
+    let chunk = chunk_names
+        .iter()
+        .zip(chunk_values)
+        .map(|(n, v)| (n.to_string(), ScalarType::F32, vec![v]))
+        .collect();
+    let packed = |values: [f64; 3]| ("".to_string(), ScalarType::U32, values.to_vec());
+    let mut vertex = Vec::new();
+    for (name, values) in [
+        ("packed_position", [0.0, 2_147_483_647.0, 1_234_567_890.0]),
+        (
+            "packed_rotation",
+            [3_221_749_247.0, 523_776.0, 2_684_354_559.0],
+        ),
+        ("packed_scale", [0.0, 4_294_967_295.0, 2_000_000_000.0]),
+        (
+            "packed_color",
+            [4_286_611_711.0, 2_155_905_279.0, 16_777_215.0],
+        ),
+    ] {
+        let (_, scalar, v) = packed(values);
+        vertex.push((name.to_string(), scalar, v));
+    }
+    let sh = (0..9)
+        .map(|i| {
+            (
+                format!("f_rest_{i}"),
+                ScalarType::U8,
+                vec![0.0, 128.0, 255.0],
+            )
+        })
+        .collect();
+    omniscan_core::ply::to_binary_le(&PlyFile {
+        format: Format::BinaryLittleEndian,
+        comments: vec![],
+        elements: vec![
+            element("chunk", 1, chunk),
+            element("vertex", 3, vertex),
+            element("sh", 3, sh),
+        ],
+    })
 }
 
 fn clouds_ply(dir: &Path) -> Result<Vec<Vec<u8>>> {

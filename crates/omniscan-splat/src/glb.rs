@@ -376,8 +376,8 @@ fn read_float_accessor(
     if view["buffer"].as_u64() != Some(0) {
         return Err("data outside the .glb's own buffer".into());
     }
-    let start = view["byteOffset"].as_u64().unwrap_or(0) as usize
-        + accessor["byteOffset"].as_u64().unwrap_or(0) as usize;
+    let offset = |v: &Value| usize::try_from(v.as_u64().unwrap_or(0)).unwrap_or(usize::MAX);
+    let start = offset(&view["byteOffset"]).saturating_add(offset(&accessor["byteOffset"]));
     let element = 4 * width;
     let stride = view["byteStride"].as_u64().map_or(element, |s| s as usize);
     if stride < element {
@@ -385,18 +385,22 @@ fn read_float_accessor(
             "byte stride {stride} is shorter than an element ({element})"
         ));
     }
-    let view_end = view["byteOffset"].as_u64().unwrap_or(0) as usize
-        + view["byteLength"].as_u64().unwrap_or(0) as usize;
-    let needed = if count == 0 {
-        start
-    } else {
-        start + stride * (count - 1) + element
+    let view_end = offset(&view["byteOffset"]).saturating_add(offset(&view["byteLength"]));
+    let needed = match count {
+        0 => Some(start),
+        _ => stride
+            .checked_mul(count - 1)
+            .and_then(|v| v.checked_add(start))
+            .and_then(|v| v.checked_add(element)),
     };
-    if needed > view_end || view_end > bin.len() {
-        return Err(format!(
-            "accessor {index} runs past its buffer ({needed} > {})",
-            view_end.min(bin.len())
-        ));
+    match needed {
+        Some(needed) if needed <= view_end && view_end <= bin.len() => {}
+        _ => {
+            return Err(format!(
+                "accessor {index} ({count} elements) runs past its buffer of {} bytes",
+                view_end.min(bin.len())
+            ));
+        }
     }
     let mut out = Vec::with_capacity(count * width);
     for i in 0..count {

@@ -374,7 +374,8 @@ fn read_gzipped(bytes: &[u8]) -> Result<(Header, Extensions, Packed), String> {
     // The rest is bounded by the header's count, plus a few bytes of
     // extensions: a gzip bomb stops there.
     let expected: usize = stream_sizes(&header).iter().sum();
-    let mut rest = Vec::with_capacity(expected);
+    // Grown as data arrives: a header's count alone allocates nothing.
+    let mut rest = Vec::with_capacity(expected.min(16 * bytes.len()));
     decoder
         .take((expected + 64) as u64)
         .read_to_end(&mut rest)
@@ -475,7 +476,7 @@ fn read_v4(bytes: &[u8]) -> Result<(Header, Extensions, Packed), String> {
         return Err("truncated SPZ: the table of streams is cut off".into());
     }
     let mut at = table_end;
-    let mut raw = Vec::with_capacity(sizes.iter().sum());
+    let mut raw = Vec::with_capacity(sizes.iter().sum::<usize>().min(16 * bytes.len()));
     for (index, expected) in sizes.iter().enumerate() {
         if index >= streams {
             if *expected != 0 {
@@ -529,8 +530,14 @@ fn read_v4_extensions(mut raw: &[u8], extensions: &mut Extensions) -> Result<(),
 }
 
 fn unzstd(frame: &[u8], size: usize) -> Result<Vec<u8>, String> {
-    // One byte more than the table says, so a longer stream shows.
-    let out = zstd::bulk::decompress(frame, size + 1)
+    // Streamed, so memory follows the data rather than the table's claim;
+    // one byte more than the table says, so a longer stream shows.
+    let decoder = zstd::stream::read::Decoder::with_buffer(frame)
+        .map_err(|e| format!("not a zstd frame: {e}"))?;
+    let mut out = Vec::with_capacity(size.min(16 * frame.len()));
+    decoder
+        .take(size as u64 + 1)
+        .read_to_end(&mut out)
         .map_err(|e| format!("damaged or truncated zstd data: {e}"))?;
     if out.len() != size {
         return Err(format!(
