@@ -68,8 +68,19 @@ try {
   // A clip of the page rather than the element: the element's screenshot
   // waits for it to be "stable", which a canvas that redraws every frame
   // is not when frames are slow (a million splats on SwiftShader).
-  const box = await page.locator("#omniscan-viewer .ov-canvas canvas").boundingBox();
-  await page.screenshot({ path: out, clip: box, timeout: 300000 });
+  // In a report the viewer is further down the page: scroll it into view
+  // and keep the clip inside the viewport.
+  const canvas = page.locator("#omniscan-viewer .ov-canvas canvas");
+  await canvas.evaluate((c) => c.scrollIntoView({ block: "start" }));
+  const box = await canvas.boundingBox();
+  const view = page.viewportSize();
+  const clip = {
+    x: Math.max(0, box.x),
+    y: Math.max(0, box.y),
+    width: Math.min(box.width, view.width - Math.max(0, box.x)),
+    height: Math.min(box.height, view.height - Math.max(0, box.y)),
+  };
+  await page.screenshot({ path: out, clip, timeout: 300000 });
   Object.assign(report, await page.evaluate(() => {
     const v = window.omniscanViewer;
     const c = document.querySelector("#omniscan-viewer .ov-canvas canvas");

@@ -339,6 +339,7 @@ pub struct CopyReport {
 
 /// A good or defective copy of `model`, written to `out`.
 pub fn make_copy(model: &Path, out: &Path, settings: &MakeCopySettings) -> Result<CopyReport> {
+    omniscan_splat::ply::ModelFormat::writable(out)?;
     let original = read_splats(model)?;
     let (base, defect) = match &settings.defect {
         Some(kind) => {

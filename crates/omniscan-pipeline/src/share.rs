@@ -46,7 +46,7 @@ pub fn convert(input: &Path, output: &Path, settings: &ConvertSettings) -> Resul
         4 => SpzVersion::V4,
         other => bail!("spz_version {other}: omniscan writes SPZ versions 2, 3 and 4"),
     };
-    let format = ModelFormat::of(output)?;
+    let format = ModelFormat::writable(output)?;
     let model = read_splats(input)?;
     if format == ModelFormat::Spz && version != SpzVersion::V4 {
         model.validate()?;

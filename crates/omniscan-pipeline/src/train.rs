@@ -218,6 +218,7 @@ pub fn train(
     progress: &dyn Progress,
 ) -> Result<TrainReport> {
     validate(settings)?;
+    omniscan_splat::ply::ModelFormat::writable(out)?;
     let _lock = omniscan_core::lock::OutputLock::file(out, "train")?;
     let right_to_left = settings.merge.read(settings.arm)?;
     if let Some(path) = &settings.init_right

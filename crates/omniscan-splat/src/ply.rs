@@ -35,10 +35,26 @@ pub enum ModelFormat {
     Glb,
 }
 
+fn compressed_ply_not_written(path: &Path) -> SplatError {
+    SplatError::file(
+        path,
+        "omniscan reads PlayCanvas' compressed PLY but does not write it: write .spz for a compressed model",
+    )
+}
+
 /// What `omniscan` lists when an extension is unknown.
 const SUPPORTED: &str = ".ply (3DGS PLY), .compressed.ply (PlayCanvas, read only), .spz (Niantic SPZ), .glb (glTF KHR_gaussian_splatting) and .splat (web viewers)";
 
 impl ModelFormat {
+    /// The format `path` names, refused unless omniscan writes it: what a
+    /// stage checks before its work, so a typo does not cost a training.
+    pub fn writable(path: &Path) -> Result<ModelFormat, SplatError> {
+        match ModelFormat::of(path)? {
+            ModelFormat::CompressedPly => Err(compressed_ply_not_written(path)),
+            format => Ok(format),
+        }
+    }
+
     /// The format's name for messages.
     pub fn name(self) -> &'static str {
         match self {
@@ -244,7 +260,7 @@ pub fn splats_to_ply(s: &Splats) -> PlyFile {
 /// take for view-dependent colour).
 pub fn write_splats(path: &Path, s: &Splats) -> Result<(), SplatError> {
     s.validate()?;
-    let format = ModelFormat::of(path)?;
+    let format = ModelFormat::writable(path)?;
     let keeps_bands = match format {
         ModelFormat::Ply => true,
         ModelFormat::DotSplat => false,
@@ -260,12 +276,7 @@ pub fn write_splats(path: &Path, s: &Splats) -> Result<(), SplatError> {
     }
     let bytes = match format {
         ModelFormat::Ply => omniscan_core::ply::to_binary_le(&splats_to_ply(s)),
-        ModelFormat::CompressedPly => {
-            return Err(SplatError::file(
-                path,
-                "omniscan reads PlayCanvas' compressed PLY but does not write it: write .spz for a compressed model",
-            ));
-        }
+        ModelFormat::CompressedPly => return Err(compressed_ply_not_written(path)),
         ModelFormat::DotSplat => to_dot_splat(s),
         ModelFormat::Spz => crate::spz::to_spz(s, crate::spz::SpzVersion::V4),
         ModelFormat::Glb => crate::glb::to_glb(s),
