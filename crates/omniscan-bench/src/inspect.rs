@@ -300,6 +300,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                     write_report(
                         &dir.join(format!("triplet_{t:03}")),
                         inspection,
+                        &copies,
                         &names,
                         &settings,
                     )?;

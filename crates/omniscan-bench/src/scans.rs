@@ -308,7 +308,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                 let is_located = defect_centre
                     .is_some_and(|c| defect_located(v, trial.slot, &(poses[0] * c), size_mm, 1.0));
                 let names: Vec<PathBuf> = (0..3).map(|k| PathBuf::from(LABELS[k])).collect();
-                write_report(&dir.join("report"), inspection, &names, &settings)?;
+                write_report(&dir.join("report"), inspection, &models, &names, &settings)?;
                 (
                     v.defective.unwrap_or(3),
                     v.defect_type.clone(),

@@ -15,6 +15,7 @@ use omniscan_core::io::{write_atomic, write_json_atomic};
 use omniscan_register::PointCloud;
 use omniscan_register::cloud::write_ply;
 use omniscan_register::neighbors::Neighbors;
+use omniscan_splat::Splats;
 
 use crate::InspectError;
 use crate::differencing::difference_map;
@@ -376,13 +377,14 @@ fn escape(text: &str) -> String {
 /// visual) labelled as in the table below.
 fn viewer_section(
     inspection: &Inspection,
+    models: &[Splats],
     paths: &[PathBuf],
     settings: &InspectSettings,
 ) -> Result<String, InspectError> {
-    let mut aligned = Vec::with_capacity(paths.len());
-    for (path, alignment) in paths.iter().zip(&inspection.alignments) {
-        let model = omniscan_splat::ply::read_splats(path)
-            .and_then(|m| m.transformed(&alignment.transform, 1.0))
+    let mut aligned = Vec::with_capacity(models.len());
+    for ((model, alignment), path) in models.iter().zip(&inspection.alignments).zip(paths) {
+        let model = model
+            .transformed(&alignment.transform, 1.0)
             .map_err(|e| InspectError::file(path, e.to_string()))?;
         aligned.push(model);
     }
@@ -424,6 +426,7 @@ fn viewer_section(
 pub fn write_report(
     out: &Path,
     inspection: &Inspection,
+    models: &[Splats],
     paths: &[PathBuf],
     settings: &InspectSettings,
 ) -> Result<PathBuf, InspectError> {
@@ -517,7 +520,7 @@ pub fn write_report(
         }
     }
     html.push_str("</p>");
-    html.push_str(&viewer_section(inspection, paths, settings)?);
+    html.push_str(&viewer_section(inspection, models, paths, settings)?);
     html.push_str("<h2>Regions</h2><table><tr><th>model</th><th>kind</th><th>centroid (model units)</th>\
                    <th>extent mm</th><th>area mm²</th><th>noise floor mm²</th><th>standing out</th><th>mean difference</th><th>significant</th></tr>");
     for r in &v.regions {

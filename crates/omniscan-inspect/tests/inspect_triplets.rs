@@ -274,7 +274,7 @@ fn the_report_has_every_output() {
     let dir = tempfile::tempdir().unwrap();
     let names: Vec<std::path::PathBuf> =
         ["a.ply", "b.ply", "c.ply"].iter().map(Into::into).collect();
-    write_report(dir.path(), &result, &names, &settings()).unwrap();
+    write_report(dir.path(), &result, &copies, &names, &settings()).unwrap();
     let verdict: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(dir.path().join("verdict.json")).unwrap())
             .unwrap();
@@ -311,7 +311,7 @@ fn the_report_has_every_output() {
     // earlier run's.
     std::fs::remove_file(dir.path().join("report.html")).unwrap();
     std::fs::create_dir(dir.path().join("report.html")).unwrap();
-    assert!(write_report(dir.path(), &result, &names, &settings()).is_err());
+    assert!(write_report(dir.path(), &result, &copies, &names, &settings()).is_err());
     assert!(!dir.path().join("verdict.json").exists());
 }
 

@@ -259,7 +259,7 @@ pub fn inspect(
         ),
         other => other.into(),
     })?;
-    let verdict = write_report(out, &inspection, models, &resolved)?;
+    let verdict = write_report(out, &inspection, &splats, models, &resolved)?;
     let v = &inspection.verdict;
     Ok(InspectReport {
         verdict,

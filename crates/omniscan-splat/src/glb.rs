@@ -416,27 +416,9 @@ fn read_float_accessor(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::test_support::Lcg;
 
     fn model(degree: usize, n: usize) -> Splats {
-        let mut rng = Lcg(3);
-        let mut s = Splats {
-            sh_degree: degree,
-            ..Default::default()
-        };
-        for _ in 0..n {
-            s.means.push([0, 1, 2].map(|_| rng.next() as f32 - 0.5));
-            s.log_scales
-                .push([0, 1, 2].map(|_| -5.0 + rng.next() as f32));
-            let q = [0, 1, 2, 3].map(|_| rng.next() as f32 - 0.5);
-            let norm = q.iter().map(|v| v * v).sum::<f32>().sqrt();
-            s.quats.push(q.map(|v| v / norm));
-            s.opacity_logits.push(rng.next() as f32 * 4.0 - 2.0);
-            for _ in 0..coefficients(degree) {
-                s.sh.push([0, 1, 2].map(|_| rng.next() as f32 - 0.5));
-            }
-        }
-        s
+        crate::test_support::random_model(3, degree, n, 0.5)
     }
 
     #[test]

@@ -91,6 +91,30 @@ pub(crate) mod test_support {
             (self.0 >> 11) as f64 / (1u64 << 53) as f64
         }
     }
+
+    /// `n` random splats of SH `degree` within `extent` of the origin,
+    /// log-scales in [-6, -4], unit quaternions, for the format tests.
+    pub fn random_model(seed: u64, degree: usize, n: usize, extent: f32) -> crate::Splats {
+        let mut rng = Lcg(seed);
+        let mut s = crate::Splats {
+            sh_degree: degree,
+            ..Default::default()
+        };
+        for _ in 0..n {
+            s.means
+                .push([0, 1, 2].map(|_| (rng.next() as f32 - 0.5) * 2.0 * extent));
+            s.log_scales
+                .push([0, 1, 2].map(|_| -6.0 + 2.0 * rng.next() as f32));
+            let q = [0, 1, 2, 3].map(|_| rng.next() as f32 - 0.5);
+            let norm = q.iter().map(|v| v * v).sum::<f32>().sqrt();
+            s.quats.push(q.map(|v| v / norm));
+            s.opacity_logits.push(4.0 * (rng.next() as f32 - 0.5));
+            for _ in 0..crate::sh::coefficients(degree) {
+                s.sh.push([0, 1, 2].map(|_| rng.next() as f32 - 0.5));
+            }
+        }
+        s
+    }
 }
 
 use std::path::{Path, PathBuf};

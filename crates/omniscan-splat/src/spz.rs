@@ -622,27 +622,9 @@ fn half_to_f32(h: u16) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::test_support::Lcg;
 
     fn model(degree: usize, n: usize) -> Splats {
-        let mut rng = Lcg(7);
-        let mut s = Splats {
-            sh_degree: degree,
-            ..Default::default()
-        };
-        for _ in 0..n {
-            s.means
-                .push([0, 1, 2].map(|_| (rng.next() as f32 - 0.5) * 0.2));
-            s.log_scales
-                .push([0, 1, 2].map(|_| -6.0 + 2.0 * rng.next() as f32));
-            s.quats
-                .push(normalized([0, 1, 2, 3].map(|_| rng.next() as f32 - 0.5)));
-            s.opacity_logits.push(4.0 * (rng.next() as f32 - 0.5));
-            for _ in 0..coefficients(degree) {
-                s.sh.push([0, 1, 2].map(|_| rng.next() as f32 - 0.5));
-            }
-        }
-        s
+        crate::test_support::random_model(7, degree, n, 0.1)
     }
 
     /// Rotation matrices of two quaternions agree (q and −q are one rotation).

@@ -1847,18 +1847,23 @@ fn gpu_picks_the_adapter_and_names_those_there_are() {
     assert_refused(&out, "--gpu 99 names no adapter; there are: 0: ");
 }
 
-/// Bad models are refused naming the file and the problem, in every format.
-#[test]
-fn convert_refuses_bad_models_naming_the_file_and_the_problem() {
-    let tmp = tempfile::tempdir().unwrap();
-    let splats = omniscan_splat::Splats {
+/// A model of two splats, for the format tests.
+fn two_splats() -> omniscan_splat::Splats {
+    omniscan_splat::Splats {
         means: vec![[0.0; 3], [0.1, 0.0, 0.0]],
         log_scales: vec![[-3.0; 3]; 2],
         quats: vec![[1.0, 0.0, 0.0, 0.0]; 2],
         opacity_logits: vec![1.0, -1.0],
         sh: vec![[0.2; 3], [-0.2; 3]],
         ..Default::default()
-    };
+    }
+}
+
+/// Bad models are refused naming the file and the problem, in every format.
+#[test]
+fn convert_refuses_bad_models_naming_the_file_and_the_problem() {
+    let tmp = tempfile::tempdir().unwrap();
+    let splats = two_splats();
     let ply = tmp.path().join("m.ply");
     omniscan_splat::ply::write_splats(&ply, &splats).unwrap();
     let out = tmp.path().join("out.ply");
@@ -1902,14 +1907,7 @@ fn convert_refuses_bad_models_naming_the_file_and_the_problem() {
 fn convert_chooses_formats_by_extension() {
     let tmp = tempfile::tempdir().unwrap();
     let ply = tmp.path().join("m.ply");
-    let splats = omniscan_splat::Splats {
-        means: vec![[0.0; 3], [0.1, 0.0, 0.0]],
-        log_scales: vec![[-3.0; 3]; 2],
-        quats: vec![[1.0, 0.0, 0.0, 0.0]; 2],
-        opacity_logits: vec![1.0, -1.0],
-        sh: vec![[0.2; 3], [-0.2; 3]],
-        ..Default::default()
-    };
+    let splats = two_splats();
     omniscan_splat::ply::write_splats(&ply, &splats).unwrap();
     let web = tmp.path().join("m.splat");
     let back = tmp.path().join("back.ply");
