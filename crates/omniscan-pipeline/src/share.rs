@@ -9,8 +9,8 @@ use std::path::{Path, PathBuf};
 use anyhow::{Result, bail};
 use serde::{Deserialize, Serialize};
 
-use omniscan_splat::ply::{ModelFormat, read_splats, write_splats};
-use omniscan_splat::spz::{SpzVersion, to_spz};
+use omniscan_splat::ply::{ModelFormat, read_splats, write_splats_as};
+use omniscan_splat::spz::SpzVersion;
 
 use crate::settings::default_from_flags;
 
@@ -48,12 +48,7 @@ pub fn convert(input: &Path, output: &Path, settings: &ConvertSettings) -> Resul
     };
     let format = ModelFormat::writable(output)?;
     let model = read_splats(input)?;
-    if format == ModelFormat::Spz && version != SpzVersion::V4 {
-        model.validate()?;
-        omniscan_core::io::write_atomic(output, &to_spz(&model, version))?;
-    } else {
-        write_splats(output, &model)?;
-    }
+    write_splats_as(output, &model, version)?;
     Ok(ConvertReport {
         input: input.to_path_buf(),
         output: output.to_path_buf(),

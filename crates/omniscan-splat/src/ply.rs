@@ -259,6 +259,15 @@ pub fn splats_to_ply(s: &Splats) -> PlyFile {
 /// and the base colour of fixed-rig ones (whose bands other viewers would
 /// take for view-dependent colour).
 pub fn write_splats(path: &Path, s: &Splats) -> Result<(), SplatError> {
+    write_splats_as(path, s, crate::spz::SpzVersion::V4)
+}
+
+/// [`write_splats`], with the SPZ version to write when `path` is `.spz`.
+pub fn write_splats_as(
+    path: &Path,
+    s: &Splats,
+    spz_version: crate::spz::SpzVersion,
+) -> Result<(), SplatError> {
     s.validate()?;
     let format = ModelFormat::writable(path)?;
     let keeps_bands = match format {
@@ -278,7 +287,7 @@ pub fn write_splats(path: &Path, s: &Splats) -> Result<(), SplatError> {
         ModelFormat::Ply => omniscan_core::ply::to_binary_le(&splats_to_ply(s)),
         ModelFormat::CompressedPly => return Err(compressed_ply_not_written(path)),
         ModelFormat::DotSplat => to_dot_splat(s),
-        ModelFormat::Spz => crate::spz::to_spz(s, crate::spz::SpzVersion::V4),
+        ModelFormat::Spz => crate::spz::to_spz(s, spz_version),
         ModelFormat::Glb => crate::glb::to_glb(s),
     };
     omniscan_core::io::write_atomic(path, &bytes)?;
