@@ -4,13 +4,13 @@
 //! the inspection's defect markers are drawn where the report puts them.
 
 use std::path::Path;
-use std::process::{Command, Output};
+use std::process::Output;
 
+mod common;
+
+/// Runs omniscan, asserting that it succeeds.
 fn omniscan(args: &[&str]) -> Output {
-    let output = Command::new(env!("CARGO_BIN_EXE_omniscan"))
-        .args(args)
-        .output()
-        .unwrap();
+    let output = common::omniscan(args);
     assert!(
         output.status.success(),
         "omniscan {args:?}: {}",
@@ -92,42 +92,11 @@ fn the_twin_report_shows_the_twin() {
 #[ignore = "needs Chromium and web/node_modules (.ci/run installs them)"]
 fn the_inspection_report_marks_the_defect_in_3d() {
     let dir = tempfile::tempdir().unwrap();
-    let part = omniscan_inspect::generate::test_part([0.06, 0.04, 0.025], 0.0012);
-    let original = dir.path().join("part.ply");
-    omniscan_splat::ply::write_splats(&original, &part).unwrap();
+    let [a, b, c] = common::part_copies(dir.path());
     let path = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
-    for (name, seed, defect) in [
-        ("a.ply", "1", None),
-        ("b.ply", "2", Some("bump")),
-        ("c.ply", "3", None),
-    ] {
-        let out = path(name);
-        let mut args = vec![
-            "make-copy",
-            original.to_str().unwrap(),
-            "--seed",
-            seed,
-            "--out",
-            &out,
-        ];
-        if let Some(d) = defect {
-            args.extend(["--defect", d, "--size-mm", "7"]);
-        }
-        omniscan(&args);
-    }
     let report = path("report");
     omniscan(&[
-        "inspect",
-        &path("a.ply"),
-        &path("b.ply"),
-        &path("c.ply"),
-        "--out",
-        &report,
-        "--views",
-        "40",
-        "--width",
-        "128",
-        "--height",
+        "inspect", &a, &b, &c, "--out", &report, "--views", "40", "--width", "128", "--height",
         "96",
     ]);
     let page = Path::new(&report).join("report.html");

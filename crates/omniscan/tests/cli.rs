@@ -1406,24 +1406,9 @@ fn twin_builds_the_merged_model_in_stages_and_resumes_an_interrupted_run() {
 #[test]
 fn inspect_names_the_defective_copy_and_writes_the_report() {
     let dir = tempfile::tempdir().unwrap();
-    let part = omniscan_inspect::generate::test_part([0.06, 0.04, 0.025], 0.0012);
+    common::part_copies(dir.path());
     let original = dir.path().join("part.ply");
-    omniscan_splat::ply::write_splats(&original, &part).unwrap();
     let path = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
-    for (name, seed, defect) in [
-        ("a.ply", "1", None),
-        ("b.ply", "2", Some("bump")),
-        ("c.ply", "3", None),
-    ] {
-        let mut args = vec!["make-copy", original.to_str().unwrap(), "--seed", seed];
-        let out = path(name);
-        args.extend(["--out", out.as_str()]);
-        if let Some(d) = defect {
-            args.extend(["--defect", d, "--size-mm", "7"]);
-        }
-        let o = omniscan(&args);
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    }
     let report = path("report");
     // `inspect` on the three copies with `options`.
     let inspect_copies = |options: &[&str]| {

@@ -69,3 +69,33 @@ pub fn tiny_left_export(dir: &Path) -> (PathBuf, PathBuf) {
     );
     (capture, export)
 }
+
+/// Three copies of a generated 6x4x2.5 cm part in `dir` (a.ply, b.ply with
+/// a 7 mm bump, c.ply), made by `omniscan make-copy`; their paths.
+pub fn part_copies(dir: &Path) -> [String; 3] {
+    let part = omniscan_inspect::generate::test_part([0.06, 0.04, 0.025], 0.0012);
+    let original = dir.join("part.ply");
+    omniscan_splat::ply::write_splats(&original, &part).unwrap();
+    let path = |name: &str| dir.join(name).to_str().unwrap().to_string();
+    for (name, seed, defect) in [
+        ("a.ply", "1", None),
+        ("b.ply", "2", Some("bump")),
+        ("c.ply", "3", None),
+    ] {
+        let out = path(name);
+        let mut args = vec![
+            "make-copy",
+            original.to_str().unwrap(),
+            "--seed",
+            seed,
+            "--out",
+            &out,
+        ];
+        if let Some(d) = defect {
+            args.extend(["--defect", d, "--size-mm", "7"]);
+        }
+        let o = omniscan(&args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    [path("a.ply"), path("b.ply"), path("c.ply")]
+}
