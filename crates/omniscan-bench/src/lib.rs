@@ -6,6 +6,7 @@
 mod formats;
 mod inspect;
 mod mask;
+mod mesh;
 mod registration;
 mod scans;
 mod sim;
@@ -29,6 +30,8 @@ pub enum BenchCommand {
     Splat(splat::BenchArgs),
     /// What each model format keeps: renders after a round trip through SPZ, glb, .splat (and splat-transform's files) against the original's, file sizes.
     Formats(formats::BenchArgs),
+    /// Mesh accuracy against the simulator's true mesh (Chamfer, F-score, volume), the twin's mesh against a TSDF of the sensor depth; asset time.
+    Mesh(mesh::BenchArgs),
     /// Time a full simulated capture: both arms' trajectories plus the empty pass.
     Sim(sim::BenchArgs),
 }
@@ -43,6 +46,7 @@ pub fn run(command: BenchCommand) -> Result<()> {
         BenchCommand::Splat(args) => splat::bench(args),
         BenchCommand::Sim(args) => sim::bench(args),
         BenchCommand::Formats(args) => formats::bench(args),
+        BenchCommand::Mesh(args) => mesh::bench(args),
     }
 }
 

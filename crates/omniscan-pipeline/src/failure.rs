@@ -37,6 +37,13 @@ impl Failure {
                     _ => Failure::Input,
                 };
             }
+            if let Some(e) = cause.downcast_ref::<omniscan_mesh::MeshError>() {
+                return match e {
+                    omniscan_mesh::MeshError::Io(e) => core(e),
+                    omniscan_mesh::MeshError::File { .. } => Failure::File,
+                    omniscan_mesh::MeshError::Input(_) => Failure::Input,
+                };
+            }
             if cause
                 .downcast_ref::<omniscan_register::RegisterError>()
                 .is_some()

@@ -12,6 +12,8 @@
 //! | render a model | [`render::render`] | |
 //! | find the defective copy | [`inspect::inspect`] | "Defect inspection" |
 //! | make a (defective) copy | [`inspect::make_copy`] | |
+//! | a watertight, coloured mesh of a twin | [`geometry::mesh`] | |
+//! | a simulation asset (URDF, MJCF) of a twin | [`geometry::asset`] | |
 //!
 //! Each stage takes one settings struct: its fields carry their unit in
 //! their name or doc, and its `Default` is the documented default. The same
@@ -39,6 +41,7 @@ pub mod align;
 pub mod demo;
 pub mod evaluate;
 pub mod failure;
+pub mod geometry;
 pub mod inspect;
 pub mod mask;
 pub mod memory;

@@ -107,9 +107,15 @@ pub fn to_glb(s: &Splats) -> Vec<u8> {
         "bufferViews": views,
         "accessors": accessors,
     });
+    pack_glb(&document, &buffer)
+}
+
+/// A glTF binary container: the JSON `document` and one binary chunk.
+pub fn pack_glb(document: &Value, buffer: &[u8]) -> Vec<u8> {
     let mut text = serde_json::to_vec(&document).expect("a JSON value serialises");
     text.resize(text.len().next_multiple_of(4), b' ');
-    let total = 12 + 8 + text.len() + 8 + buffer.len();
+    let padded = buffer.len().next_multiple_of(4);
+    let total = 12 + 8 + text.len() + 8 + padded;
     let mut out = Vec::with_capacity(total);
     out.extend(MAGIC.to_le_bytes());
     out.extend(2u32.to_le_bytes());
@@ -117,9 +123,10 @@ pub fn to_glb(s: &Splats) -> Vec<u8> {
     out.extend((text.len() as u32).to_le_bytes());
     out.extend(CHUNK_JSON.to_le_bytes());
     out.extend(text);
-    out.extend((buffer.len() as u32).to_le_bytes());
+    out.extend((padded as u32).to_le_bytes());
     out.extend(CHUNK_BIN.to_le_bytes());
-    out.extend(buffer);
+    out.extend_from_slice(buffer);
+    out.resize(out.len().next_multiple_of(4), 0);
     out
 }
 

@@ -93,6 +93,32 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// A watertight, coloured triangle mesh of a twin, in metres: OBJ + MTL + PNG texture, PLY, GLB, and mesh.json (area, volume, unseen area in mm², watertightness). docs/mesh.md
+    Mesh {
+        /// The twin (any format `convert` reads).
+        model: PathBuf,
+        /// The folder to write.
+        #[arg(long, default_value = "mesh")]
+        out: PathBuf,
+        #[command(flatten)]
+        settings: omniscan_pipeline::geometry::MeshSettings,
+        /// Print the report as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// A simulation asset of a twin: the mesh, convex collision pieces, mass and inertia, as URDF and MuJoCo MJCF. docs/mesh.md
+    Asset {
+        /// The twin (any format `convert` reads).
+        model: PathBuf,
+        /// The folder to write.
+        #[arg(long, default_value = "asset")]
+        out: PathBuf,
+        #[command(flatten)]
+        settings: omniscan_pipeline::geometry::AssetSettings,
+        /// Print the report as JSON.
+        #[arg(long)]
+        json: bool,
+    },
     /// Gripper and object masks for every frame of a capture (kinematic gripper masks, the paper's object pipeline).
     Mask(MaskArgs),
     /// Write a nerfstudio transforms.json (OpenGL camera axes, object masks; gripper masks under omniscan's own gripper_mask_path, which nerfstudio ignores).
@@ -329,6 +355,18 @@ fn run(cli: Cli) -> Result<()> {
             settings,
             json,
         } => convert(&input, &output, &settings, json),
+        Command::Mesh {
+            model,
+            out,
+            settings,
+            json,
+        } => mesh(&model, &out, &settings, json, &bars),
+        Command::Asset {
+            model,
+            out,
+            settings,
+            json,
+        } => asset(&model, &out, &settings, json, &bars),
         Command::Mask(args) => mask(args, &bars),
         Command::ExportNerfstudio {
             capture,
@@ -601,6 +639,69 @@ fn convert(
         report.format,
         report.bytes as f64 / 1e6
     );
+    Ok(())
+}
+
+fn print_mesh(report: &omniscan_pipeline::geometry::MeshReport) {
+    let s = &report.stats;
+    println!(
+        "mesh: {} triangles, {:.1} x {:.1} x {:.1} mm, area {:.0} mm², volume {:.0} mm³, {}",
+        s.topology.faces,
+        s.extent_mm[0],
+        s.extent_mm[1],
+        s.extent_mm[2],
+        s.area_mm2,
+        s.volume_mm3,
+        if s.topology.is_watertight() { "watertight" } else { "NOT watertight" }
+    );
+    println!(
+        "  {:.2} mm voxels, {} views; closed over {:.1} mm² no view saw (marked `unseen` in the PLY); {:.1} s",
+        s.voxel_mm, s.views, s.unseen_area_mm2, s.seconds
+    );
+    let f = &report.files;
+    for path in [&f.obj, &f.ply, &f.glb] {
+        println!("  wrote {}", path.display());
+    }
+}
+
+fn mesh(
+    model: &std::path::Path,
+    out: &std::path::Path,
+    settings: &omniscan_pipeline::geometry::MeshSettings,
+    json: bool,
+    bars: &omniscan_pipeline::Bars,
+) -> Result<()> {
+    let report = omniscan_pipeline::geometry::mesh(model, out, settings, bars)?;
+    if json {
+        return print_json(&report);
+    }
+    print_mesh(&report);
+    Ok(())
+}
+
+fn asset(
+    model: &std::path::Path,
+    out: &std::path::Path,
+    settings: &omniscan_pipeline::geometry::AssetSettings,
+    json: bool,
+    bars: &omniscan_pipeline::Bars,
+) -> Result<()> {
+    let report = omniscan_pipeline::geometry::asset(model, out, settings, bars)?;
+    if json {
+        return print_json(&report);
+    }
+    print_mesh(&report.mesh);
+    let m = &report.mass;
+    println!(
+        "asset: {:.1} g at {:.0} kg/m³, {} convex pieces ({:.0}% of the volume), {:.1} s",
+        m.mass_kg * 1e3,
+        m.density_kg_m3,
+        report.collision_meshes.len(),
+        report.hull_volume_percent,
+        report.seconds
+    );
+    println!("  wrote {}", report.urdf.display());
+    println!("  wrote {}", report.mjcf.display());
     Ok(())
 }
 
