@@ -47,6 +47,8 @@ __all__ = [
     "make_copy",
     "convert",
     "view",
+    "mesh",
+    "asset",
     "read_splats",
     "write_splats",
     "read_cloud",
@@ -213,3 +215,16 @@ def view(models: Iterable[PathLike], *, out: PathLike, progress: Any = None, **s
     """Writes ``out``, one HTML file that shows ``models`` in 3D in any
     browser, offline."""
     return _run("view", [out, *models], settings, progress)
+
+
+def mesh(model: PathLike, *, out: PathLike, progress: Any = None, **settings: Any) -> Report:
+    """Writes a watertight, coloured triangle mesh of the twin ``model``
+    (metres) into the folder ``out``: OBJ + MTL + PNG, PLY, GLB, mesh.json."""
+    return _run("mesh", [model, out], settings, progress)
+
+
+def asset(model: PathLike, *, out: PathLike, progress: Any = None, **settings: Any) -> Report:
+    """Writes a simulation asset of the twin ``model`` into the folder
+    ``out``: the mesh, convex collision pieces, mass and inertia, as URDF
+    and MuJoCo MJCF."""
+    return _run("asset", [model, out], settings, progress)

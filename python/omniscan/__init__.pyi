@@ -36,7 +36,7 @@ def evaluate(model: PathLike, capture: PathLike, *, arm: str = 'left', backend: 
 def render(model: PathLike, *, out: PathLike, arm: str = 'left', backend: str = 'auto', background: Sequence[Any] = [0.0, 0.0, 0.0], capture: Optional[Any] = None, height: int = 480, orbit: int = 8, right_to_left: Optional[Any] = None, width: int = 640, progress: Any = None) -> Report:
     """Renders ``model`` into PNG images in the folder ``out``: a turntable, ..."""
 
-def inspect(models: Iterable[PathLike], *, out: PathLike, arm: str = 'both', backend: str = 'auto', capture: Optional[Any] = None, close_up: bool = False, colour_threshold: float = 0.3, height: int = 120, photometric_radius_mm: float = 15.0, reference: Optional[Any] = None, right_to_left: Optional[Any] = None, seed: int = 0, threshold_mm: float = 4.5, units_per_metre: float = 1.0, views: int = 100, width: int = 160, progress: Any = None) -> Report:
+def inspect(models: Iterable[PathLike], *, out: PathLike, arm: str = 'both', backend: str = 'auto', capture: Optional[Any] = None, close_up: bool = False, colour_threshold: float = 0.3, height: int = 120, no_surface_deviation: bool = False, photometric_radius_mm: float = 15.0, reference: Optional[Any] = None, right_to_left: Optional[Any] = None, seed: int = 0, threshold_mm: float = 4.5, units_per_metre: float = 1.0, views: int = 100, width: int = 160, progress: Any = None) -> Report:
     """Finds the defective copy among three or more models of a part and ..."""
 
 def make_copy(model: PathLike, *, out: PathLike, defect: Optional[Any] = None, keep_pose: bool = False, noise_mm: float = 0.3, seed: int = 0, size_mm: float = 6.0, units_per_metre: float = 1.0, progress: Any = None) -> Report:
@@ -47,3 +47,9 @@ def convert(model: PathLike, *, out: PathLike, spz_version: int = 4, progress: A
 
 def view(models: Iterable[PathLike], *, out: PathLike, names: Sequence[Any] = [], title: Optional[Any] = None, progress: Any = None) -> Report:
     """Writes ``out``, one HTML file that shows ``models`` in 3D in any ..."""
+
+def mesh(model: PathLike, *, out: PathLike, faces: int = 20000, name: Optional[Any] = None, scale_m_per_unit: float = 1.0, texture_px: int = 2048, view_px: int = 320, views: int = 64, voxel_mm: Optional[Any] = None, progress: Any = None) -> Report:
+    """Writes a watertight, coloured triangle mesh of the twin ``model`` ..."""
+
+def asset(model: PathLike, *, out: PathLike, decomposition_resolution: int = 64, density_kg_m3: Optional[Any] = None, faces: int = 20000, hulls: int = 16, mass_kg: Optional[Any] = None, name: Optional[Any] = None, scale_m_per_unit: float = 1.0, texture_px: int = 2048, view_px: int = 320, views: int = 64, voxel_mm: Optional[Any] = None, progress: Any = None) -> Report:
+    """Writes a simulation asset of the twin ``model`` into the folder ..."""

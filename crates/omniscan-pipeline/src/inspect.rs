@@ -89,6 +89,10 @@ pub struct InspectionSettings {
     /// defects, and more differences between good copies too.
     #[arg(long)]
     pub close_up: bool,
+    /// Skip meshing the copies for their surface deviation in millimetres
+    /// (deviation_K.ply; regions where it passes 1 mm are typed geometric).
+    #[arg(long)]
+    pub no_surface_deviation: bool,
 }
 
 default_from_flags!(InspectionSettings);
@@ -225,6 +229,9 @@ pub struct InspectReport {
     pub score: f64,
     /// Every model but the first, aligned to it.
     pub alignments: Vec<ModelAlignment>,
+    /// Every model but the first: its surface's deviation from the first's
+    /// (empty with `no_surface_deviation`; also in surface_deviation.json).
+    pub surface_deviation: Vec<crate::deviation::CopyDeviation>,
     pub seconds: f64,
 }
 
@@ -246,7 +253,7 @@ pub fn inspect(
     let result =
         crate::memory::with_threads(at_once, || omniscan_inspect::inspect(&splats, &resolved))?;
     progress.finish();
-    let inspection = result.map_err(|e| match e {
+    let mut inspection = result.map_err(|e| match e {
         omniscan_inspect::InspectError::Alignment {
             model,
             fitness,
@@ -259,7 +266,24 @@ pub fn inspect(
         ),
         other => other.into(),
     })?;
+    let _lock = omniscan_core::lock::OutputLock::folder(out, "inspect")?;
+    let deviations = if settings.no_surface_deviation {
+        Vec::new()
+    } else {
+        progress.start("meshing the copies for their surface deviation", 0, "");
+        let d = crate::deviation::surface_deviation(&splats, &mut inspection, resolved.units_per_metre, out);
+        progress.finish();
+        // The verdict stands without it: say why it is missing.
+        d.unwrap_or_else(|e| {
+            tracing::warn!("no surface deviation: {e:#}");
+            progress.note(&format!("no surface deviation: {e:#}"));
+            Vec::new()
+        })
+    };
     let verdict = write_report(out, &inspection, &splats, models, &resolved)?;
+    if !deviations.is_empty() {
+        omniscan_core::io::write_json_atomic(&out.join("surface_deviation.json"), &deviations)?;
+    }
     let v = &inspection.verdict;
     Ok(InspectReport {
         verdict,
@@ -288,6 +312,7 @@ pub fn inspect(
                 method: a.method.clone(),
             })
             .collect(),
+        surface_deviation: deviations,
         seconds: inspection.timings.total,
     })
 }

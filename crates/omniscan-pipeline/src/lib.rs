@@ -39,6 +39,7 @@
 
 pub mod align;
 pub mod demo;
+pub mod deviation;
 pub mod evaluate;
 pub mod failure;
 pub mod geometry;

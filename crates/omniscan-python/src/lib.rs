@@ -64,7 +64,7 @@ impl Progress for PyProgress {
 }
 
 /// The stages the bindings run, by the Python function's name.
-const STAGES: [&str; 11] = [
+const STAGES: [&str; 13] = [
     "simulate",
     "mask",
     "train",
@@ -76,6 +76,8 @@ const STAGES: [&str; 11] = [
     "make_copy",
     "convert",
     "view",
+    "mesh",
+    "asset",
 ];
 
 /// A keyword argument the stage's settings cannot take.
@@ -124,6 +126,8 @@ fn default_json(stage: &str) -> Result<serde_json::Value> {
         "make_copy" => json::<inspect::MakeCopySettings>(),
         "convert" => json::<share::ConvertSettings>(),
         "view" => json::<share::ViewSettings>(),
+        "mesh" => json::<geometry::MeshSettings>(),
+        "asset" => json::<geometry::AssetSettings>(),
         other => bail!("no stage `{other}`: the stages are {}", STAGES.join(", ")),
     }
 }
@@ -170,6 +174,8 @@ fn run(
         "make_copy" => to_json(inspect::make_copy(p(0), p(1), &settings(given)?)?),
         "convert" => to_json(share::convert(p(0), p(1), &settings(given)?)?),
         "view" => to_json(share::view(&paths[1..], p(0), &settings(given)?)?),
+        "mesh" => to_json(geometry::mesh(p(0), p(1), &settings(given)?, progress)?),
+        "asset" => to_json(geometry::asset(p(0), p(1), &settings(given)?, progress)?),
         other => bail!("no stage `{other}`: the stages are {}", STAGES.join(", ")),
     }
 }
