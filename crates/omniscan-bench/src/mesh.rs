@@ -68,8 +68,16 @@ fn object_label(object: &str) -> String {
     if !path.exists() {
         return object.to_string();
     }
-    let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("object");
-    match (stem, path.parent().and_then(|p| p.file_name()).and_then(|s| s.to_str())) {
+    let stem = path
+        .file_stem()
+        .and_then(|s| s.to_str())
+        .unwrap_or("object");
+    match (
+        stem,
+        path.parent()
+            .and_then(|p| p.file_name())
+            .and_then(|s| s.to_str()),
+    ) {
         ("model" | "textured" | "mesh", Some(parent)) => parent.to_string(),
         _ => stem.to_string(),
     }
@@ -85,7 +93,11 @@ fn capture_and_twin(dir: &Path, object: &str, args: &BenchArgs) -> Result<(Captu
             empty_pass: false,
             ..SimConfig::default()
         };
-        omniscan_pipeline::simulate::simulate_config(config, &capture_dir, &omniscan_pipeline::Bars::new())?;
+        omniscan_pipeline::simulate::simulate_config(
+            config,
+            &capture_dir,
+            &omniscan_pipeline::Bars::new(),
+        )?;
     }
     let capture = Capture::load(&capture_dir)?;
     let model = dir.join(format!("twin-{}-{}.ply", args.steps, args.downscale));
@@ -107,9 +119,15 @@ fn capture_and_twin(dir: &Path, object: &str, args: &BenchArgs) -> Result<(Captu
 
 /// The simulator's mesh of the object in the twin's (left gripper's) frame.
 pub fn true_mesh(capture: &Capture) -> Result<TriMesh> {
-    let gt = capture.file.gt.as_ref().context("the capture has no ground truth")?;
+    let gt = capture
+        .file
+        .gt
+        .as_ref()
+        .context("the capture has no ground truth")?;
     let object = gt.extra.get("object").context("gt.object missing")?;
-    let source = object["source"].as_str().context("gt.object.source missing")?;
+    let source = object["source"]
+        .as_str()
+        .context("gt.object.source missing")?;
     let scale = object["scale_m_per_unit"].as_f64();
     let sim = omniscan_sim::simulate::load_object(source, scale)?;
     let mesh = TriMesh {
@@ -133,7 +151,10 @@ fn sensor_depth_mesh(capture: &Capture, voxel_m: f64, truth: &TriMesh) -> Result
             frame.depth_path.as_ref(),
             frame.gt.as_ref().and_then(|g| g.object_mask_path.as_ref()),
         ) else {
-            bail!("{}: a frame lacks sensor depth or a true object mask", capture.dir.display());
+            bail!(
+                "{}: a frame lacks sensor depth or a true object mask",
+                capture.dir.display()
+            );
         };
         let depth = read_depth(&capture.resolve(depth))?;
         let mask = read_mask(&capture.resolve(mask))?;
@@ -158,8 +179,31 @@ fn sensor_depth_mesh(capture: &Capture, voxel_m: f64, truth: &TriMesh) -> Result
         hi.map(|c| c as f64 + margin),
         voxel_m,
     );
-    let tsdf = fuse(grid, 3.0 * voxel_m, &views);
+    // Plain TSDF fusion, as a user would run on sensor depth.
+    let tsdf = fuse(grid, 3.0 * voxel_m, &views, 2.0);
     Ok(largest_component(&omniscan_mesh::extract::extract(&tsdf)).0)
+}
+
+/// The signed distance (positive outside) of the twin's opaque splat
+/// centres from the true surface: median and 90th percentile of |d|, mm.
+fn splat_offsets(model: &Path, truth: &TriMesh) -> Result<(f64, f64)> {
+    let splats = omniscan_splat::ply::read_splats(model)?;
+    let surface = omniscan_mesh::accuracy::Surface::new(truth)?;
+    let mut signed: Vec<f64> = splats
+        .means
+        .iter()
+        .zip(&splats.opacity_logits)
+        .filter(|(_, o)| **o > 0.0)
+        .map(|(m, _)| surface.signed_distance(*m).0 as f64 * 1e3)
+        .collect();
+    if signed.is_empty() {
+        bail!("{}: no opaque splats", model.display());
+    }
+    signed.sort_by(f64::total_cmp);
+    let median = signed[signed.len() / 2];
+    let mut magnitudes: Vec<f64> = signed.iter().map(|d| d.abs()).collect();
+    magnitudes.sort_by(f64::total_cmp);
+    Ok((median, magnitudes[magnitudes.len() * 9 / 10]))
 }
 
 fn row(object: &str, method: &str, a: &Accuracy, seconds: f64) -> serde_json::Value {
@@ -178,20 +222,40 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         let (capture, model) = capture_and_twin(&dir, object, &args)?;
         let truth = true_mesh(&capture)?;
         let start = Instant::now();
-        let report = asset(&model, &dir.join("asset"), &args.asset, &omniscan_pipeline::Bars::new())?;
+        let report = asset(
+            &model,
+            &dir.join("asset"),
+            &args.asset,
+            &omniscan_pipeline::Bars::new(),
+        )?;
         let asset_s = start.elapsed().as_secs_f64();
         let ours = omniscan_mesh::files::read_ply_mesh(&report.mesh.files.ply)?;
+        let (splat_median_mm, splat_p90_mm) = splat_offsets(&model, &truth)?;
+        println!(
+            "{label:<24} opaque splat centres from the true surface: median {splat_median_mm:+.3} mm, 90% within {splat_p90_mm:.3} mm"
+        );
         let ours_acc = compare(&ours, &truth, args.samples)?;
         let start = Instant::now();
         let voxel_m = report.mesh.stats.voxel_mm * 1e-3;
         let baseline = sensor_depth_mesh(&capture, voxel_m, &truth)?;
         let baseline_s = start.elapsed().as_secs_f64();
         let base_acc = compare(&baseline, &truth, args.samples)?;
-        for (method, a, s) in [("twin mesh", &ours_acc, asset_s), ("sensor TSDF", &base_acc, baseline_s)] {
+        for (method, a, s) in [
+            ("twin mesh", &ours_acc, asset_s),
+            ("sensor TSDF", &base_acc, baseline_s),
+        ] {
             println!(
                 "{:<24} {:<14} {:>8.3} {:>8.3} {:>8.3} {:>7.3} {:>7.3} {:>8} {:>7.1}",
-                label, method, a.chamfer_mm, a.accuracy_mm, a.completeness_mm, a.f_score_1mm, a.f_score_2mm,
-                a.volume_error_percent.map_or("open GT".into(), |v| format!("{v:.1}%")), s
+                label,
+                method,
+                a.chamfer_mm,
+                a.accuracy_mm,
+                a.completeness_mm,
+                a.f_score_1mm,
+                a.f_score_2mm,
+                a.volume_error_percent
+                    .map_or("open GT".into(), |v| format!("{v:.1}%")),
+                s
             );
             rows.push(row(&label, method, a, s));
         }

@@ -24,7 +24,11 @@ pub struct Surface {
 
 impl Surface {
     pub fn new(mesh: &TriMesh) -> Result<Surface, MeshError> {
-        let vertices = mesh.positions.iter().map(|p| Vector::new(p[0], p[1], p[2])).collect();
+        let vertices = mesh
+            .positions
+            .iter()
+            .map(|p| Vector::new(p[0], p[1], p[2]))
+            .collect();
         let shape = ParryMesh::with_flags(vertices, mesh.triangles.clone(), TriMeshFlags::ORIENTED)
             .map_err(|e| MeshError::Input(format!("the mesh cannot be queried: {e}")))?;
         Ok(Surface { shape })
@@ -68,7 +72,9 @@ pub fn sample_surface(mesh: &TriMesh, count: usize, seed: u64) -> Vec<[f32; 3]> 
     (0..count)
         .map(|_| {
             let x = rng.random::<f64>() * total;
-            let i = cumulative.partition_point(|&c| c < x).min(cumulative.len() - 1);
+            let i = cumulative
+                .partition_point(|&c| c < x)
+                .min(cumulative.len() - 1);
             let (mut r1, mut r2) = (rng.random::<f32>(), rng.random::<f32>());
             if r1 + r2 > 1.0 {
                 (r1, r2) = (1.0 - r1, 1.0 - r2);
@@ -98,7 +104,11 @@ pub struct Accuracy {
 }
 
 /// Compares `reconstruction` with `truth` over `samples` points on each.
-pub fn compare(reconstruction: &TriMesh, truth: &TriMesh, samples: usize) -> Result<Accuracy, MeshError> {
+pub fn compare(
+    reconstruction: &TriMesh,
+    truth: &TriMesh,
+    samples: usize,
+) -> Result<Accuracy, MeshError> {
     let (rec_surface, true_surface) = (Surface::new(reconstruction)?, Surface::new(truth)?);
     let distances = |points: Vec<[f32; 3]>, to: &Surface| -> Vec<f64> {
         points.par_iter().map(|&p| to.distance(p) as f64).collect()
@@ -109,10 +119,15 @@ pub fn compare(reconstruction: &TriMesh, truth: &TriMesh, samples: usize) -> Res
         return Err(MeshError::Input("a mesh to compare has no area".into()));
     }
     let mean = |d: &[f64]| d.iter().sum::<f64>() / d.len() as f64;
-    let within = |d: &[f64], tau: f64| d.iter().filter(|&&x| x <= tau).count() as f64 / d.len() as f64;
+    let within =
+        |d: &[f64], tau: f64| d.iter().filter(|&&x| x <= tau).count() as f64 / d.len() as f64;
     let f_score = |tau: f64| {
         let (p, r) = (within(&to_truth, tau), within(&to_rec, tau));
-        if p + r > 0.0 { 2.0 * p * r / (p + r) } else { 0.0 }
+        if p + r > 0.0 {
+            2.0 * p * r / (p + r)
+        } else {
+            0.0
+        }
     };
     let (acc, comp) = (mean(&to_truth) * 1e3, mean(&to_rec) * 1e3);
     Ok(Accuracy {

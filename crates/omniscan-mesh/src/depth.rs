@@ -14,7 +14,11 @@ use omniscan_splat::raster::{Camera, Gaussians, Projected, quat_to_rotmat};
 /// The per-pixel median surface depth (camera z, metres; 0 where the
 /// opacity never reaches one half), compositing in the renderer's order
 /// (front to back by centre depth) with its footprints and opacities.
-pub fn median_surface_depth(g: &Gaussians<f32>, camera: &Camera<f32>, p: &Projected<f32>) -> Vec<f32> {
+pub fn median_surface_depth(
+    g: &Gaussians<f32>,
+    camera: &Camera<f32>,
+    p: &Projected<f32>,
+) -> Vec<f32> {
     let (w, h) = (camera.width as usize, camera.height as usize);
     let mut transmittance = vec![1.0f32; w * h];
     let mut depth = vec![0.0f32; w * h];

@@ -80,7 +80,13 @@ fn is_inside(sdf: f32) -> bool {
 /// Appends the triangles of the cube whose lowest corner is voxel `at`.
 fn cube_triangles(tsdf: &Tsdf, at: [usize; 3], out: &mut Vec<EdgeTriangle>) {
     let g = &tsdf.grid;
-    let corner = |c: usize| g.index(at[0] + (c & 1), at[1] + ((c >> 1) & 1), at[2] + ((c >> 2) & 1));
+    let corner = |c: usize| {
+        g.index(
+            at[0] + (c & 1),
+            at[1] + ((c >> 1) & 1),
+            at[2] + ((c >> 2) & 1),
+        )
+    };
     let ids: [usize; 8] = std::array::from_fn(corner);
     let inside = ids.map(|i| is_inside(tsdf.sdf[i]));
     if inside.iter().all(|&b| b) || inside.iter().all(|&b| !b) {
@@ -144,7 +150,11 @@ fn voxel_position(tsdf: &Tsdf, i: usize) -> [f64; 3] {
 fn crossing(tsdf: &Tsdf, (a, b): (usize, usize)) -> [f64; 3] {
     let (pa, pb) = (voxel_position(tsdf, a), voxel_position(tsdf, b));
     let (da, db) = (tsdf.sdf[a] as f64, tsdf.sdf[b] as f64);
-    let t = if da == db { 0.5 } else { (da / (da - db)).clamp(0.0, 1.0) };
+    let t = if da == db {
+        0.5
+    } else {
+        (da / (da - db)).clamp(0.0, 1.0)
+    };
     [0, 1, 2].map(|k| pa[k] + t * (pb[k] - pa[k]))
 }
 

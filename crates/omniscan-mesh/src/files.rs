@@ -27,7 +27,12 @@ pub struct MeshFiles {
 }
 
 /// Writes `NAME.obj` (+ `.mtl`, `.png`), `NAME.ply` and `NAME.glb` in `dir`.
-pub fn write_all(dir: &Path, name: &str, mesh: &TriMesh, texture: &Texture) -> Result<MeshFiles, MeshError> {
+pub fn write_all(
+    dir: &Path,
+    name: &str,
+    mesh: &TriMesh,
+    texture: &Texture,
+) -> Result<MeshFiles, MeshError> {
     let files = MeshFiles {
         obj: dir.join(format!("{name}.obj")),
         mtl: dir.join(format!("{name}.mtl")),
@@ -151,7 +156,12 @@ pub fn ply(mesh: &TriMesh) -> Vec<u8> {
             scalar("unseen", ScalarType::U8),
         ],
         columns: vec![
-            Column::List(mesh.triangles.iter().map(|t| t.map(f64::from).to_vec()).collect()),
+            Column::List(
+                mesh.triangles
+                    .iter()
+                    .map(|t| t.map(f64::from).to_vec())
+                    .collect(),
+            ),
             Column::Scalar(mesh.unseen.iter().map(|&u| u as u8 as f64).collect()),
         ],
     };
@@ -167,7 +177,10 @@ pub fn vertex_normals(mesh: &TriMesh) -> Vec<[f32; 3]> {
     let mut normals = vec![[0.0f32; 3]; mesh.positions.len()];
     for t in &mesh.triangles {
         let [a, b, c] = t.map(|v| mesh.positions[v as usize]);
-        let (u, v) = ([0, 1, 2].map(|k| b[k] - a[k]), [0, 1, 2].map(|k| c[k] - a[k]));
+        let (u, v) = (
+            [0, 1, 2].map(|k| b[k] - a[k]),
+            [0, 1, 2].map(|k| c[k] - a[k]),
+        );
         let n = [
             u[1] * v[2] - u[2] * v[1],
             u[2] * v[0] - u[0] * v[2],
@@ -179,7 +192,11 @@ pub fn vertex_normals(mesh: &TriMesh) -> Vec<[f32; 3]> {
     }
     for n in &mut normals {
         let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
-        *n = if len > 0.0 { n.map(|c| c / len) } else { [0.0, 0.0, 1.0] };
+        *n = if len > 0.0 {
+            n.map(|c| c / len)
+        } else {
+            [0.0, 0.0, 1.0]
+        };
     }
     normals
 }
@@ -260,13 +277,29 @@ pub fn read_ply_mesh(path: &Path) -> Result<TriMesh, MeshError> {
         message,
     };
     let file = omniscan_core::ply::read(path)?;
-    let vertex = file.element("vertex").ok_or_else(|| bad("no vertex element".into()))?;
-    let face = file.element("face").ok_or_else(|| bad("no face element".into()))?;
-    let axis = |name: &str| vertex.scalar(name).ok_or_else(|| bad(format!("no vertex property `{name}`")));
+    let vertex = file
+        .element("vertex")
+        .ok_or_else(|| bad("no vertex element".into()))?;
+    let face = file
+        .element("face")
+        .ok_or_else(|| bad("no face element".into()))?;
+    let axis = |name: &str| {
+        vertex
+            .scalar(name)
+            .ok_or_else(|| bad(format!("no vertex property `{name}`")))
+    };
     let (x, y, z) = (axis("x")?, axis("y")?, axis("z")?);
-    let positions: Vec<[f32; 3]> = (0..vertex.count).map(|i| [x[i], y[i], z[i]].map(|c| c as f32)).collect();
-    let colors = match (vertex.scalar("red"), vertex.scalar("green"), vertex.scalar("blue")) {
-        (Some(r), Some(g), Some(b)) => (0..vertex.count).map(|i| [r[i], g[i], b[i]].map(|c| (c / 255.0) as f32)).collect(),
+    let positions: Vec<[f32; 3]> = (0..vertex.count)
+        .map(|i| [x[i], y[i], z[i]].map(|c| c as f32))
+        .collect();
+    let colors = match (
+        vertex.scalar("red"),
+        vertex.scalar("green"),
+        vertex.scalar("blue"),
+    ) {
+        (Some(r), Some(g), Some(b)) => (0..vertex.count)
+            .map(|i| [r[i], g[i], b[i]].map(|c| (c / 255.0) as f32))
+            .collect(),
         _ => vec![[0.5; 3]; vertex.count],
     };
     let lists = face
@@ -276,7 +309,10 @@ pub fn read_ply_mesh(path: &Path) -> Result<TriMesh, MeshError> {
     let mut triangles = Vec::with_capacity(lists.len());
     for (i, list) in lists.iter().enumerate() {
         let [a, b, c] = list[..] else {
-            return Err(bad(format!("face {i} has {} corners; only triangles are read", list.len())));
+            return Err(bad(format!(
+                "face {i} has {} corners; only triangles are read",
+                list.len()
+            )));
         };
         let corner = |v: f64| {
             (v >= 0.0 && (v as usize) < positions.len() && v.fract() == 0.0)
@@ -289,5 +325,10 @@ pub fn read_ply_mesh(path: &Path) -> Result<TriMesh, MeshError> {
         Some(u) => u.iter().map(|&v| v != 0.0).collect(),
         None => vec![false; triangles.len()],
     };
-    Ok(TriMesh { positions, colors, triangles, unseen })
+    Ok(TriMesh {
+        positions,
+        colors,
+        triangles,
+        unseen,
+    })
 }

@@ -51,12 +51,14 @@ impl TriMesh {
                 if *slot == u32::MAX {
                     *slot = out.positions.len() as u32;
                     out.positions.push(self.positions[v as usize]);
-                    out.colors.push(self.colors.get(v as usize).copied().unwrap_or([0.5; 3]));
+                    out.colors
+                        .push(self.colors.get(v as usize).copied().unwrap_or([0.5; 3]));
                 }
                 *slot
             });
             out.triangles.push(corners);
-            out.unseen.push(self.unseen.get(i).copied().unwrap_or(false));
+            out.unseen
+                .push(self.unseen.get(i).copied().unwrap_or(false));
         }
         out
     }

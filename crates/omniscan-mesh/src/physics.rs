@@ -17,7 +17,11 @@ use crate::{MeshError, TriMesh};
 /// Convex pieces whose union approximates `mesh`, at most `max_hulls`,
 /// from a voxelisation `resolution` cells across.
 pub fn convex_decomposition(mesh: &TriMesh, max_hulls: u32, resolution: u32) -> Vec<TriMesh> {
-    let points: Vec<Vector> = mesh.positions.iter().map(|p| Vector::new(p[0], p[1], p[2])).collect();
+    let points: Vec<Vector> = mesh
+        .positions
+        .iter()
+        .map(|p| Vector::new(p[0], p[1], p[2]))
+        .collect();
     let params = VHACDParameters {
         resolution,
         max_convex_hulls: max_hulls.max(1),
@@ -62,12 +66,23 @@ pub enum MassFrom {
 /// The mass properties of the solid `mesh` encloses (closed, outward).
 pub fn mass_properties(mesh: &TriMesh, from: MassFrom) -> Result<MassProperties, MeshError> {
     if mesh.triangles.is_empty() {
-        return Err(MeshError::Input("the mesh is empty: mass and inertia need a closed surface".into()));
+        return Err(MeshError::Input(
+            "the mesh is empty: mass and inertia need a closed surface".into(),
+        ));
     }
-    let points: Vec<Vector> = mesh.positions.iter().map(|p| Vector::new(p[0], p[1], p[2])).collect();
-    let unit = parry3d::mass_properties::MassProperties::from_trimesh(1.0, &points, &mesh.triangles);
-    let volume = if unit.inv_mass > 0.0 { 1.0 / unit.inv_mass as f64 } else { 0.0 };
-    if !(volume > 0.0) {
+    let points: Vec<Vector> = mesh
+        .positions
+        .iter()
+        .map(|p| Vector::new(p[0], p[1], p[2]))
+        .collect();
+    let unit =
+        parry3d::mass_properties::MassProperties::from_trimesh(1.0, &points, &mesh.triangles);
+    let volume = if unit.inv_mass > 0.0 {
+        1.0 / unit.inv_mass as f64
+    } else {
+        0.0
+    };
+    if volume.is_nan() || volume <= 0.0 {
         return Err(MeshError::Input(
             "the mesh encloses no volume: mass and inertia need a closed surface".into(),
         ));
@@ -76,14 +91,22 @@ pub fn mass_properties(mesh: &TriMesh, from: MassFrom) -> Result<MassProperties,
         MassFrom::DensityKgM3(d) if d.is_finite() && d > 0.0 => d,
         MassFrom::MassKg(m) if m.is_finite() && m > 0.0 => m / volume,
         MassFrom::DensityKgM3(d) => {
-            return Err(MeshError::Input(format!("--density-kg-m3 must be positive, got {d}")));
+            return Err(MeshError::Input(format!(
+                "--density-kg-m3 must be positive, got {d}"
+            )));
         }
         MassFrom::MassKg(m) => {
-            return Err(MeshError::Input(format!("--mass-kg must be positive, got {m}")));
+            return Err(MeshError::Input(format!(
+                "--mass-kg must be positive, got {m}"
+            )));
         }
     };
     let unit_inertia = unit.reconstruct_inertia_matrix();
-    let cols = [unit_inertia.x_axis, unit_inertia.y_axis, unit_inertia.z_axis];
+    let cols = [
+        unit_inertia.x_axis,
+        unit_inertia.y_axis,
+        unit_inertia.z_axis,
+    ];
     let inertia = Matrix3::from_fn(|r, c| cols[c][r] as f64 * density);
     let eigen = inertia.symmetric_eigen();
     let mut axes = eigen.eigenvectors;
@@ -126,7 +149,10 @@ pub fn urdf(layout: &AssetLayout, mass: &MassProperties) -> String {
     let c = mass.center_of_mass_m;
     let i = mass.inertia_kg_m2;
     let mut s = String::new();
-    let _ = writeln!(s, "<?xml version=\"1.0\"?>\n<!-- omniscan asset; metres, kilograms -->");
+    let _ = writeln!(
+        s,
+        "<?xml version=\"1.0\"?>\n<!-- omniscan asset; metres, kilograms -->"
+    );
     let _ = writeln!(s, "<robot name=\"{name}\">");
     let _ = writeln!(
         s,
@@ -134,7 +160,11 @@ pub fn urdf(layout: &AssetLayout, mass: &MassProperties) -> String {
     );
     let _ = writeln!(s, "  <link name=\"{name}\">");
     let _ = writeln!(s, "    <inertial>");
-    let _ = writeln!(s, "      <origin xyz=\"{} {} {}\" rpy=\"0 0 0\"/>", c[0], c[1], c[2]);
+    let _ = writeln!(
+        s,
+        "      <origin xyz=\"{} {} {}\" rpy=\"0 0 0\"/>",
+        c[0], c[1], c[2]
+    );
     let _ = writeln!(s, "      <mass value=\"{}\"/>", mass.mass_kg);
     let _ = writeln!(
         s,
@@ -176,10 +206,17 @@ pub fn mjcf(layout: &AssetLayout, mass: &MassProperties) -> String {
         xml_escape(&layout.visual_mesh)
     );
     for (k, hull) in layout.collision_meshes.iter().enumerate() {
-        let _ = writeln!(s, "    <mesh name=\"{name}_collision_{k}\" file=\"{}\"/>", xml_escape(hull));
+        let _ = writeln!(
+            s,
+            "    <mesh name=\"{name}_collision_{k}\" file=\"{}\"/>",
+            xml_escape(hull)
+        );
     }
     let _ = writeln!(s, "  </asset>\n  <worldbody>");
-    let _ = writeln!(s, "    <body name=\"{name}\">\n      <freejoint name=\"{name}_free\"/>");
+    let _ = writeln!(
+        s,
+        "    <body name=\"{name}\">\n      <freejoint name=\"{name}_free\"/>"
+    );
     let _ = writeln!(
         s,
         "      <inertial pos=\"{} {} {}\" quat=\"{} {} {} {}\" mass=\"{}\" diaginertia=\"{} {} {}\"/>",

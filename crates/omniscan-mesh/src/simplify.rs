@@ -47,7 +47,10 @@ impl Quadric {
     fn error(&self, p: [f64; 3]) -> f64 {
         let q = &self.0;
         let [x, y, z] = p;
-        q[0] * x * x + 2.0 * q[1] * x * y + 2.0 * q[2] * x * z + 2.0 * q[3] * x
+        q[0] * x * x
+            + 2.0 * q[1] * x * y
+            + 2.0 * q[2] * x * z
+            + 2.0 * q[3] * x
             + q[4] * y * y
             + 2.0 * q[5] * y * z
             + 2.0 * q[6] * y
@@ -179,7 +182,10 @@ impl Decimator {
                 options.push(p);
             }
         }
-        let mut costed: Vec<([f64; 3], f64)> = options.into_iter().map(|p| (p, q.error(p).max(0.0))).collect();
+        let mut costed: Vec<([f64; 3], f64)> = options
+            .into_iter()
+            .map(|p| (p, q.error(p).max(0.0)))
+            .collect();
         costed.sort_by(|a, b| a.1.total_cmp(&b.1));
         costed
     }
@@ -226,7 +232,13 @@ impl Decimator {
                 }
                 let tri = self.triangles[t as usize];
                 let before = tri.map(|x| self.positions[x as usize]);
-                let after = tri.map(|x| if x == u || x == v { p } else { self.positions[x as usize] });
+                let after = tri.map(|x| {
+                    if x == u || x == v {
+                        p
+                    } else {
+                        self.positions[x as usize]
+                    }
+                });
                 let n0 = cross(sub(before[1], before[0]), sub(before[2], before[0]));
                 let n1 = cross(sub(after[1], after[0]), sub(after[2], after[0]));
                 let (l0, l1) = (dot(n0, n0).sqrt(), dot(n1, n1).sqrt());
@@ -246,8 +258,15 @@ impl Decimator {
 
     fn collapse(&mut self, u: u32, v: u32, p: [f64; 3]) {
         let (pu, pv) = (self.positions[u as usize], self.positions[v as usize]);
-        let (du, dv) = (dot(sub(p, pu), sub(p, pu)).sqrt(), dot(sub(p, pv), sub(p, pv)).sqrt());
-        let wu = if du + dv > 0.0 { (dv / (du + dv)) as f32 } else { 0.5 };
+        let (du, dv) = (
+            dot(sub(p, pu), sub(p, pu)).sqrt(),
+            dot(sub(p, pv), sub(p, pv)).sqrt(),
+        );
+        let wu = if du + dv > 0.0 {
+            (dv / (du + dv)) as f32
+        } else {
+            0.5
+        };
         let (cu, cv) = (self.colors[u as usize], self.colors[v as usize]);
         self.colors[u as usize] = [0, 1, 2].map(|k| wu * cu[k] + (1.0 - wu) * cv[k]);
         self.positions[u as usize] = p;
@@ -279,22 +298,25 @@ impl Decimator {
 }
 
 /// The mesh brought down to at most `faces` triangles, or as near as the
-/// manifold checks allow, and the largest collapse error (the square root
-/// of the quadric error, metres). A closed 2-manifold stays one.
-pub fn simplify(mesh: &TriMesh, faces: usize) -> (TriMesh, f32) {
+/// manifold checks allow. A closed 2-manifold stays one.
+pub fn simplify(mesh: &TriMesh, faces: usize) -> TriMesh {
     if mesh.triangles.len() <= faces {
-        return (mesh.clone(), 0.0);
+        return mesh.clone();
     }
     let mut d = Decimator::new(mesh);
     for u in 0..d.positions.len() as u32 {
         for v in d.neighbours(u) {
             if u < v {
                 let cost = d.cost(u, v);
-                d.heap.push(Candidate { cost, u, v, stamps: (0, 0) });
+                d.heap.push(Candidate {
+                    cost,
+                    u,
+                    v,
+                    stamps: (0, 0),
+                });
             }
         }
     }
-    let mut worst = 0.0f64;
     while d.live > faces {
         let Some(c) = d.heap.pop() else { break };
         if c.stamps != (d.stamp[c.u as usize], d.stamp[c.v as usize]) {
@@ -302,14 +324,13 @@ pub fn simplify(mesh: &TriMesh, faces: usize) -> (TriMesh, f32) {
         }
         // The cheapest placement that keeps the surface sound (the
         // optimum may turn a thin neighbour over where an end point does not).
-        let Some((p, cost)) = d
+        let Some((p, _)) = d
             .placements(c.u, c.v)
             .into_iter()
             .find(|(p, _)| d.allowed(c.u, c.v, *p))
         else {
             continue;
         };
-        worst = worst.max(cost);
         d.collapse(c.u, c.v, p);
     }
     let out = TriMesh {
@@ -319,5 +340,5 @@ pub fn simplify(mesh: &TriMesh, faces: usize) -> (TriMesh, f32) {
         unseen: mesh.unseen.clone(),
     };
     let alive = d.alive;
-    (out.filter_triangles(|t| alive[t]), worst.sqrt() as f32)
+    out.filter_triangles(|t| alive[t])
 }

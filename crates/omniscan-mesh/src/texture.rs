@@ -78,7 +78,8 @@ pub fn bake(mesh: &TriMesh, tsdf: Option<&Tsdf>, side: u32) -> Texture {
                 let Some(&tri) = mesh.triangles.get(t) else {
                     continue;
                 };
-                let corners = cell_corners(second, gap).map(|c| c.map(|v| pad + v * (1.0 - 2.0 * pad)));
+                let corners =
+                    cell_corners(second, gap).map(|c| c.map(|v| pad + v * (1.0 - 2.0 * pad)));
                 let l = local.map(|c| c.clamp(pad, 1.0 - pad));
                 let w = barycentric(l, corners);
                 let color = texel_color(mesh, tsdf, tri, w);
@@ -109,7 +110,11 @@ fn barycentric(p: [f32; 2], t: [[f32; 2]; 3]) -> [f32; 3] {
 
 fn texel_color(mesh: &TriMesh, tsdf: Option<&Tsdf>, tri: [u32; 3], w: [f32; 3]) -> [f32; 3] {
     let corner = |k: usize| mesh.positions[tri[k] as usize];
-    let p = [0, 1, 2].map(|i| (0..3).map(|k| w[k] as f64 * corner(k)[i] as f64).sum::<f64>());
+    let p = [0, 1, 2].map(|i| {
+        (0..3)
+            .map(|k| w[k] as f64 * corner(k)[i] as f64)
+            .sum::<f64>()
+    });
     tsdf.and_then(|v| v.color_at(p)).unwrap_or_else(|| {
         [0, 1, 2].map(|i| (0..3).map(|k| w[k] * mesh.colors[tri[k] as usize][i]).sum())
     })

@@ -52,7 +52,10 @@ pub fn topology(mesh: &TriMesh) -> Topology {
         }
     }
     let mut used = vec![false; mesh.positions.len()];
-    mesh.triangles.iter().flatten().for_each(|&v| used[v as usize] = true);
+    mesh.triangles
+        .iter()
+        .flatten()
+        .for_each(|&v| used[v as usize] = true);
     let (mut boundary, mut non_manifold, mut misoriented) = (0, 0, 0);
     for &(forward, backward) in edges.values() {
         match forward + backward {
@@ -114,7 +117,11 @@ fn triangle_terms(mesh: &TriMesh, t: &[u32; 3]) -> (f64, f64) {
 
 /// Surface area, m².
 pub fn area(mesh: &TriMesh) -> f64 {
-    mesh.triangles.iter().map(|t| triangle_terms(mesh, t).0).sum::<f64>() / 2.0
+    mesh.triangles
+        .iter()
+        .map(|t| triangle_terms(mesh, t).0)
+        .sum::<f64>()
+        / 2.0
 }
 
 /// Area of the triangles marked unseen, m².
@@ -131,7 +138,11 @@ pub fn unseen_area(mesh: &TriMesh) -> f64 {
 /// The volume a closed, outward-oriented mesh encloses, m³ (by the
 /// divergence theorem: the sum of the signed tetrahedra to the origin).
 pub fn volume(mesh: &TriMesh) -> f64 {
-    mesh.triangles.iter().map(|t| triangle_terms(mesh, t).1).sum::<f64>() / 6.0
+    mesh.triangles
+        .iter()
+        .map(|t| triangle_terms(mesh, t).1)
+        .sum::<f64>()
+        / 6.0
 }
 
 /// The mesh with only the component that encloses the most volume, and

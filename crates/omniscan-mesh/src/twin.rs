@@ -38,6 +38,9 @@ pub struct MeshConfig {
     pub texture_px: u32,
     /// Metres per model unit (1 for omniscan's twins, 0.001 for a model in millimetres).
     pub scale_m_per_unit: f64,
+    /// The share of decisive views that makes a voxel inside
+    /// ([`crate::fusion::INSIDE_VOTE`]); above 1: no vote (clean depth).
+    pub inside_vote: f32,
 }
 
 impl Default for MeshConfig {
@@ -50,6 +53,7 @@ impl Default for MeshConfig {
             truncation_voxels: 3.0,
             texture_px: 2048,
             scale_m_per_unit: 1.0,
+            inside_vote: crate::fusion::INSIDE_VOTE,
         }
     }
 }
@@ -72,8 +76,10 @@ pub struct MeshStats {
     pub volume_mm3: f64,
     /// Surface closed over regions no view saw (marked in the files), mm².
     pub unseen_area_mm2: f64,
-    /// The decimation's largest collapse error (root of the summed squared plane distances), mm.
-    pub simplify_error_mm: f64,
+    /// How far the decimation moved the surface: the largest and the mean
+    /// distance of the extracted mesh's vertices from the decimated mesh, mm.
+    pub decimation_max_mm: f64,
+    pub decimation_mean_mm: f64,
     pub extent_mm: [f64; 3],
     pub seconds: f64,
     /// Things the user should know (thin parts, a mesh that is not closed).
@@ -95,7 +101,11 @@ pub fn mesh_model(model: &Splats, config: &MeshConfig) -> Result<ModelMesh, Mesh
     let largest = extent.iter().cloned().fold(0.0, f64::max);
     let voxel_m = match config.voxel_mm {
         Some(v) if v.is_finite() && v > 0.0 => v * 1e-3,
-        Some(v) => return Err(MeshError::Input(format!("--voxel-mm must be positive, got {v}"))),
+        Some(v) => {
+            return Err(MeshError::Input(format!(
+                "--voxel-mm must be positive, got {v}"
+            )));
+        }
         None => (largest / 200.0).clamp(0.2e-3, 2e-3),
     };
     let truncation_m = config.truncation_voxels.max(1.0) * voxel_m;
@@ -109,12 +119,14 @@ pub fn mesh_model(model: &Splats, config: &MeshConfig) -> Result<ModelMesh, Mesh
             largest * 1e3
         )));
     }
-    let lap = |what: &str, since: Instant| tracing::debug!("{what}: {:.2} s", since.elapsed().as_secs_f64());
+    let lap = |what: &str, since: Instant| {
+        tracing::debug!("{what}: {:.2} s", since.elapsed().as_secs_f64())
+    };
     let t = Instant::now();
     let views = depth_views(model, config, lo, hi);
     lap("rendering depth", t);
     let t = Instant::now();
-    let tsdf = fuse(grid, truncation_m, &views);
+    let tsdf = fuse(grid, truncation_m, &views, config.inside_vote);
     lap("fusing", t);
     let t = Instant::now();
     let extracted = extract::extract(&tsdf);
@@ -122,7 +134,8 @@ pub fn mesh_model(model: &Splats, config: &MeshConfig) -> Result<ModelMesh, Mesh
     let (object, dropped) = largest_component(&extracted);
     lap("extracting", t);
     let t = Instant::now();
-    let (mesh, error) = simplify::simplify(&object, config.faces);
+    let mesh = simplify::simplify(&object, config.faces);
+    let moved = decimation_distance(&object, &mesh)?;
     lap("decimating", t);
     let topology = topology(&mesh);
     let mut warnings = Vec::new();
@@ -142,12 +155,29 @@ pub fn mesh_model(model: &Splats, config: &MeshConfig) -> Result<ModelMesh, Mesh
         area_mm2: area_m2 * 1e6,
         volume_mm3: volume_m3 * 1e9,
         unseen_area_mm2: unseen_area(&mesh) * 1e6,
-        simplify_error_mm: error as f64 * 1e3,
+        decimation_max_mm: moved.0 * 1e3,
+        decimation_mean_mm: moved.1 * 1e3,
         extent_mm: [0, 1, 2].map(|k| (mhi[k] - mlo[k]) as f64 * 1e3),
         seconds: start.elapsed().as_secs_f64(),
         warnings,
     };
     Ok(ModelMesh { mesh, tsdf, stats })
+}
+
+/// The largest and mean distance (metres) of `before`'s vertices from `after`.
+fn decimation_distance(before: &TriMesh, after: &TriMesh) -> Result<(f64, f64), MeshError> {
+    use rayon::prelude::*;
+    if before.triangles.len() == after.triangles.len() || after.triangles.is_empty() {
+        return Ok((0.0, 0.0));
+    }
+    let surface = crate::accuracy::Surface::new(after)?;
+    let d: Vec<f64> = before
+        .positions
+        .par_iter()
+        .map(|&p| surface.distance(p) as f64)
+        .collect();
+    let max = d.iter().cloned().fold(0.0, f64::max);
+    Ok((max, d.iter().sum::<f64>() / d.len().max(1) as f64))
 }
 
 /// Refuses a mesh with nothing solid in it and warns of parts thinner than
@@ -313,6 +343,8 @@ fn scale_model(model: &Splats, scale: f32) -> Splats {
     let mut out = model.clone();
     out.means.iter_mut().for_each(|m| *m = m.map(|c| c * scale));
     let ln = scale.ln();
-    out.log_scales.iter_mut().for_each(|s| *s = s.map(|c| c + ln));
+    out.log_scales
+        .iter_mut()
+        .for_each(|s| *s = s.map(|c| c + ln));
     out
 }

@@ -27,7 +27,9 @@ fn octahedron() -> TriMesh {
         [0, 3, 5],
     ];
     TriMesh {
-        colors: (0..6).map(|i| [i as f32 / 5.0, 0.5, 1.0 - i as f32 / 5.0]).collect(),
+        colors: (0..6)
+            .map(|i| [i as f32 / 5.0, 0.5, 1.0 - i as f32 / 5.0])
+            .collect(),
         positions,
         unseen: (0..8).map(|t| t >= 6).collect(),
         triangles,
@@ -54,17 +56,20 @@ fn the_files_read_back_in_other_readers() {
     // OBJ through tobj: same triangles (as positions), the texture named.
     let (models, materials) = tobj::load_obj(
         &files.obj,
-        &tobj::LoadOptions { triangulate: true, single_index: false, ..Default::default() },
+        &tobj::LoadOptions {
+            triangulate: true,
+            single_index: false,
+            ..Default::default()
+        },
     )
     .unwrap();
     let m = &models[0].mesh;
     assert_eq!(m.indices.len(), 24);
-    for (i, t) in mesh.triangles.iter().enumerate() {
-        for k in 0..3 {
-            let v = m.indices[3 * i + k] as usize;
-            let p = &m.positions[3 * v..3 * v + 3];
-            assert_eq!(p, &mesh.positions[t[k] as usize][..]);
-        }
+    let corners = mesh.triangles.iter().flatten();
+    for (&index, &v) in m.indices.iter().zip(corners) {
+        let index = index as usize;
+        let p = &m.positions[3 * index..3 * index + 3];
+        assert_eq!(p, &mesh.positions[v as usize][..]);
     }
     assert_eq!(m.texcoord_indices.len(), 24);
     let materials = materials.unwrap();
@@ -77,24 +82,32 @@ fn the_files_read_back_in_other_readers() {
     let reader = primitive.reader(|b| Some(&buffers[b.index()]));
     let positions: Vec<[f32; 3]> = reader.read_positions().unwrap().collect();
     assert_eq!(positions.len(), 24);
-    for (i, t) in mesh.triangles.iter().enumerate() {
-        for k in 0..3 {
-            let p = mesh.positions[t[k] as usize];
-            assert_eq!(positions[3 * i + k], [-p[0], -p[1], p[2]]);
-        }
+    let corners = mesh.triangles.iter().flatten();
+    for (q, &v) in positions.iter().zip(corners) {
+        let p = mesh.positions[v as usize];
+        assert_eq!(*q, [-p[0], -p[1], p[2]]);
     }
     let uvs: Vec<[f32; 2]> = reader.read_tex_coords(0).unwrap().into_f32().collect();
-    assert_eq!(uvs, texture.uvs.iter().flatten().copied().collect::<Vec<_>>());
+    assert_eq!(
+        uvs,
+        texture.uvs.iter().flatten().copied().collect::<Vec<_>>()
+    );
     assert_eq!(images[0].pixels, texture.rgb);
 
     // The texture at each triangle's UV centroid is the vertex colours' mean.
     for (t, uv) in mesh.triangles.iter().zip(&texture.uvs) {
         let c = [0, 1].map(|k| (uv[0][k] + uv[1][k] + uv[2][k]) / 3.0);
-        let (x, y) = ((c[0] * texture.width as f32) as u32, (c[1] * texture.height as f32) as u32);
+        let (x, y) = (
+            (c[0] * texture.width as f32) as u32,
+            (c[1] * texture.height as f32) as u32,
+        );
         let texel = &texture.rgb[((y * texture.width + x) * 3) as usize..][..3];
         for k in 0..3 {
             let mean: f32 = t.iter().map(|&v| mesh.colors[v as usize][k]).sum::<f32>() / 3.0;
-            assert!((texel[k] as f32 / 255.0 - mean).abs() < 0.08, "{texel:?} vs {mean}");
+            assert!(
+                (texel[k] as f32 / 255.0 - mean).abs() < 0.08,
+                "{texel:?} vs {mean}"
+            );
         }
     }
 }
@@ -109,7 +122,10 @@ fn bad_ply_meshes_are_refused_by_name() {
     )
     .unwrap();
     let err = read_ply_mesh(&path).unwrap_err().to_string();
-    assert!(err.contains("quad.ply") && err.contains("4 corners"), "{err}");
+    assert!(
+        err.contains("quad.ply") && err.contains("4 corners"),
+        "{err}"
+    );
     std::fs::write(
         &path,
         "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n1 1 0\n3 0 1 7\n",

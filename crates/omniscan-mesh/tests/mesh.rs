@@ -2,9 +2,11 @@
 //! volume and inertia), against independent readers of its files (the
 //! `gltf` and `tobj` crates), and end to end on splat models built here.
 
+#![allow(clippy::needless_range_loop)] // the closed forms index x, y, z together
+
 use omniscan_mesh::accuracy::{Surface, compare};
 use omniscan_mesh::extract::extract;
-use omniscan_mesh::fusion::{DepthView, Grid, Sample, Tsdf, fuse};
+use omniscan_mesh::fusion::{DepthView, Grid, INSIDE_VOTE, Sample, Tsdf, fuse};
 use omniscan_mesh::physics::{MassFrom, convex_decomposition, mass_properties};
 use omniscan_mesh::simplify::simplify;
 use omniscan_mesh::texture::bake;
@@ -12,6 +14,9 @@ use omniscan_mesh::topology::{topology, unseen_area, volume};
 use omniscan_mesh::twin::{MeshConfig, cameras_around, mesh_model};
 use omniscan_mesh::{MeshError, TriMesh};
 use omniscan_splat::Splats;
+
+/// An inside vote that never passes: plain TSDF fusion, for clean depth.
+const NO_VOTE: f32 = 2.0;
 
 /// A grid holding the exact signed distance to a sphere (in truncation units).
 fn sphere_volume(radius: f64, voxel: f64) -> Tsdf {
@@ -42,7 +47,9 @@ fn sphere_volume(radius: f64, voxel: f64) -> Tsdf {
 fn radial_errors(mesh: &TriMesh, radius: f64) -> f64 {
     mesh.positions
         .iter()
-        .map(|p| ((p[0] as f64).powi(2) + (p[1] as f64).powi(2) + (p[2] as f64).powi(2)).sqrt() - radius)
+        .map(|p| {
+            ((p[0] as f64).powi(2) + (p[1] as f64).powi(2) + (p[2] as f64).powi(2)).sqrt() - radius
+        })
         .map(f64::abs)
         .fold(0.0, f64::max)
 }
@@ -56,7 +63,11 @@ fn marching_tetrahedra_close_a_sphere() {
     assert_eq!(t.euler_characteristic(), 2, "{t:?}");
     assert_eq!(t.components, 1);
     let exact = 4.0 / 3.0 * std::f64::consts::PI * radius.powi(3);
-    assert!((volume(&mesh) / exact - 1.0).abs() < 0.01, "{} vs {exact}", volume(&mesh));
+    assert!(
+        (volume(&mesh) / exact - 1.0).abs() < 0.01,
+        "{} vs {exact}",
+        volume(&mesh)
+    );
     // Linear interpolation of an exact distance: vertices within a tenth of a voxel.
     assert!(radial_errors(&mesh, radius) < 0.1 * voxel);
     assert!(mesh.colors.iter().all(|c| (c[1] - 0.4).abs() < 1e-6));
@@ -66,17 +77,23 @@ fn marching_tetrahedra_close_a_sphere() {
 fn decimation_keeps_a_closed_surface_and_its_shape() {
     let (radius, voxel) = (0.02, 0.0008);
     let full = extract(&sphere_volume(radius, voxel));
-    let (small, error) = simplify(&full, 2000);
+    let small = simplify(&full, 2000);
     let t = topology(&small);
-    assert!(small.triangles.len() <= 2000 && small.triangles.len() > 1500, "{}", small.triangles.len());
+    assert!(
+        small.triangles.len() <= 2000 && small.triangles.len() > 1500,
+        "{}",
+        small.triangles.len()
+    );
     assert!(t.is_watertight() && t.euler_characteristic() == 2, "{t:?}");
     let exact = 4.0 / 3.0 * std::f64::consts::PI * radius.powi(3);
     assert!((volume(&small) / exact - 1.0).abs() < 0.02);
-    assert!(radial_errors(&small, radius) < 0.2e-3, "{}", radial_errors(&small, radius));
-    // The largest collapse's summed squared plane distances, rooted.
-    assert!(error > 0.0 && error < 5e-3, "{error}");
+    assert!(
+        radial_errors(&small, radius) < 0.2e-3,
+        "{}",
+        radial_errors(&small, radius)
+    );
     // The same input gives the same mesh.
-    assert_eq!(simplify(&full, 2000).0, small);
+    assert_eq!(simplify(&full, 2000), small);
 }
 
 /// Depth (camera z) of a sphere of `radius` at the origin along each pixel's ray.
@@ -118,20 +135,32 @@ fn fused_depth_views_give_the_sphere_back_and_mark_what_no_view_saw() {
     let (radius, voxel) = (0.02, 0.0005);
     let r = radius + 0.003;
     let cameras = cameras_around([-r; 3], [r; 3], 40, 200);
-    let views: Vec<DepthView> = cameras.into_iter().map(|c| sphere_depth_view(c, radius)).collect();
-    let tsdf = fuse(Grid::covering([-r; 3], [r; 3], voxel), 3.0 * voxel, &views);
+    let views: Vec<DepthView> = cameras
+        .into_iter()
+        .map(|c| sphere_depth_view(c, radius))
+        .collect();
+    let tsdf = fuse(
+        Grid::covering([-r; 3], [r; 3], voxel),
+        3.0 * voxel,
+        &views,
+        NO_VOTE,
+    );
     let mesh = extract(&tsdf);
     assert!(topology(&mesh).is_watertight());
-    // Nearest-pixel depth at grazing views and the inside vote put a few
-    // vertices off by up to a voxel; on average they are on the sphere.
-    assert!(radial_errors(&mesh, radius) < 1.2 * voxel, "{}", radial_errors(&mesh, radius));
+    // Nearest-pixel depth at grazing views puts a few vertices off by up
+    // to half a voxel; on average they are on the sphere.
+    assert!(
+        radial_errors(&mesh, radius) < 0.6 * voxel,
+        "{}",
+        radial_errors(&mesh, radius)
+    );
     let mean: f64 = mesh
         .positions
         .iter()
         .map(|p| (p.iter().map(|&c| (c as f64).powi(2)).sum::<f64>().sqrt() - radius).abs())
         .sum::<f64>()
         / mesh.positions.len() as f64;
-    assert!(mean < 0.1e-3, "mean radial error {mean}");
+    assert!(mean < 0.08e-3, "mean radial error {mean}");
     assert_eq!(unseen_area(&mesh), 0.0);
 
     // Only the views from above: the lower cap is closed and marked.
@@ -139,14 +168,22 @@ fn fused_depth_views_give_the_sphere_back_and_mark_what_no_view_saw() {
         .into_iter()
         .filter(|v| v.camera.centre()[2] > 0.012)
         .collect();
-    let tsdf = fuse(Grid::covering([-r; 3], [r; 3], voxel), 3.0 * voxel, &above);
+    let tsdf = fuse(
+        Grid::covering([-r; 3], [r; 3], voxel),
+        3.0 * voxel,
+        &above,
+        NO_VOTE,
+    );
     let mesh = extract(&tsdf);
     assert!(topology(&mesh).is_watertight());
     let unseen = unseen_area(&mesh);
     assert!(unseen > 1e-4, "{unseen} m² unseen");
     for (t, &u) in mesh.triangles.iter().zip(&mesh.unseen) {
         if u {
-            assert!(t.iter().all(|&v| mesh.positions[v as usize][2] < 0.0), "an unseen triangle above the equator");
+            assert!(
+                t.iter().all(|&v| mesh.positions[v as usize][2] < 0.0),
+                "an unseen triangle above the equator"
+            );
         }
     }
 }
@@ -189,7 +226,11 @@ fn box_mass_properties_match_the_closed_form() {
     }
     let diag = [b * b + c * c, a * a + c * c, a * a + b * b].map(|s| mass * s / 12.0);
     for k in 0..3 {
-        assert!((m.inertia_kg_m2[k][k] / diag[k] - 1.0).abs() < 1e-3, "{:?}", m.inertia_kg_m2);
+        assert!(
+            (m.inertia_kg_m2[k][k] / diag[k] - 1.0).abs() < 1e-3,
+            "{:?}",
+            m.inertia_kg_m2
+        );
         for j in 0..3 {
             if j != k {
                 assert!(m.inertia_kg_m2[k][j].abs() < 1e-3 * diag[0]);
@@ -206,7 +247,10 @@ fn box_mass_properties_match_the_closed_form() {
     let by_mass = mass_properties(&mesh, MassFrom::MassKg(0.5)).unwrap();
     assert!((by_mass.mass_kg - 0.5).abs() < 1e-9);
     assert!((by_mass.density_kg_m3 - 0.5 / (a * b * c)).abs() < 1e-3 * by_mass.density_kg_m3);
-    assert!(matches!(mass_properties(&mesh, MassFrom::DensityKgM3(-1.0)), Err(MeshError::Input(_))));
+    assert!(matches!(
+        mass_properties(&mesh, MassFrom::DensityKgM3(-1.0)),
+        Err(MeshError::Input(_))
+    ));
     let open = mesh.filter_triangles(|t| t < 10);
     assert!(mass_properties(&TriMesh::default(), MassFrom::MassKg(1.0)).is_err());
     let _ = open;
@@ -225,7 +269,11 @@ fn an_l_shape_decomposes_into_convex_pieces_that_cover_it() {
     for z in 0..grid.dims[2] {
         for y in 0..grid.dims[1] {
             for x in 0..grid.dims[0] {
-                sdf.push(if inside(grid.position(x, y, z)) { -1.0 } else { 1.0 });
+                sdf.push(if inside(grid.position(x, y, z)) {
+                    -1.0
+                } else {
+                    1.0
+                });
             }
         }
     }
@@ -242,7 +290,11 @@ fn an_l_shape_decomposes_into_convex_pieces_that_cover_it() {
     let hulls = convex_decomposition(&mesh, 8, 64);
     assert!(hulls.len() >= 2, "{} hulls", hulls.len());
     let total: f64 = hulls.iter().map(volume).sum();
-    assert!((total / volume(&mesh) - 1.0).abs() < 0.25, "{total} vs {}", volume(&mesh));
+    assert!(
+        (total / volume(&mesh) - 1.0).abs() < 0.25,
+        "{total} vs {}",
+        volume(&mesh)
+    );
     for hull in &hulls {
         assert!(volume(hull) > 0.0, "a hull turned inside out");
         // Convex: every vertex on the inner side of every face's plane.
@@ -250,7 +302,11 @@ fn an_l_shape_decomposes_into_convex_pieces_that_cover_it() {
             let [a, b, c] = t.map(|v| hull.positions[v as usize].map(f64::from));
             let u = [0, 1, 2].map(|k| b[k] - a[k]);
             let w = [0, 1, 2].map(|k| c[k] - a[k]);
-            let nrm = [u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0]];
+            let nrm = [
+                u[1] * w[2] - u[2] * w[1],
+                u[2] * w[0] - u[0] * w[2],
+                u[0] * w[1] - u[1] * w[0],
+            ];
             let len = (nrm.iter().map(|x| x * x).sum::<f64>()).sqrt();
             if len < 1e-12 {
                 continue;
@@ -274,7 +330,10 @@ fn box_splats(lo: [f32; 3], hi: [f32; 3]) -> Splats {
     for axis in 0..3 {
         for side in [lo[axis], hi[axis]] {
             let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
-            let (nu, nv) = (((hi[u] - lo[u]) / step) as usize, ((hi[v] - lo[v]) / step) as usize);
+            let (nu, nv) = (
+                ((hi[u] - lo[u]) / step) as usize,
+                ((hi[v] - lo[v]) / step) as usize,
+            );
             for i in 0..=nu {
                 for j in 0..=nv {
                     let mut p = [0.0; 3];
@@ -306,13 +365,27 @@ fn a_splat_box_meshes_to_its_box_within_a_fraction_of_a_millimetre() {
         faces: 4000,
         views: 32,
         view_px: 256,
+        inside_vote: NO_VOTE,
         ..MeshConfig::default()
     };
+    // With the inside vote (the default for twins) the clean box comes out
+    // up to the truncation bigger (see fusion::INSIDE_VOTE), and closed.
+    let voted = mesh_model(
+        &model,
+        &MeshConfig {
+            inside_vote: INSIDE_VOTE,
+            ..config
+        },
+    )
+    .unwrap();
+    assert!(voted.stats.topology.is_watertight());
+    let a = compare(&voted.mesh, &box_mesh(lo, hi), 50_000).unwrap();
+    assert!(a.chamfer_mm < 0.6 && a.f_score_1mm > 0.9, "{a:?}");
+
     let meshed = mesh_model(&model, &config).unwrap();
     let s = &meshed.stats;
     assert!(s.topology.is_watertight(), "{:?}", s.topology);
     assert!(s.topology.faces <= 4000);
-    // The box's edges and corners, where the inside vote decides a few voxels.
     assert!(s.unseen_area_mm2 < 20.0, "{} mm² unseen", s.unseen_area_mm2);
     let truth = box_mesh(lo, hi);
     let a = compare(&meshed.mesh, &truth, 50_000).unwrap();
@@ -343,13 +416,25 @@ fn bad_models_are_refused_with_the_flag_to_change() {
     let model = box_splats([-0.02, -0.015, -0.01], [0.02, 0.015, 0.01]);
     let mut faint = model.clone();
     faint.opacity_logits.iter_mut().for_each(|o| *o = -3.0);
-    let err = mesh_model(&faint, &MeshConfig::default()).err().unwrap().to_string();
+    let err = mesh_model(&faint, &MeshConfig::default())
+        .err()
+        .unwrap()
+        .to_string();
     assert!(err.contains("opaque splats"), "{err}");
 
     let mut millimetres = model.clone();
-    millimetres.means.iter_mut().for_each(|m| *m = m.map(|c| c * 1000.0));
-    millimetres.log_scales.iter_mut().for_each(|s| *s = s.map(|c| c + 1000f32.ln()));
-    let err = mesh_model(&millimetres, &MeshConfig::default()).err().unwrap().to_string();
+    millimetres
+        .means
+        .iter_mut()
+        .for_each(|m| *m = m.map(|c| c * 1000.0));
+    millimetres
+        .log_scales
+        .iter_mut()
+        .for_each(|s| *s = s.map(|c| c + 1000f32.ln()));
+    let err = mesh_model(&millimetres, &MeshConfig::default())
+        .err()
+        .unwrap()
+        .to_string();
     assert!(err.contains("--scale-m-per-unit"), "{err}");
     let config = MeshConfig {
         scale_m_per_unit: 0.001,
@@ -363,17 +448,32 @@ fn bad_models_are_refused_with_the_flag_to_change() {
     // 40 mm (not 40 m), within the coarse views' resolution.
     assert!(((hi[0] - lo[0]) - 0.04).abs() < 0.002, "{lo:?} {hi:?}");
 
-    let err = mesh_model(&model, &MeshConfig { voxel_mm: Some(0.01), ..MeshConfig::default() })
-        .err()
-        .unwrap()
-        .to_string();
+    let err = mesh_model(
+        &model,
+        &MeshConfig {
+            voxel_mm: Some(0.01),
+            ..MeshConfig::default()
+        },
+    )
+    .err()
+    .unwrap()
+    .to_string();
     assert!(err.contains("--voxel-mm"), "{err}");
 
     // A sheet 0.2 mm thick at 1 mm voxels: thinner than the voxels.
     let sheet = box_splats([-0.02, -0.015, -0.0001], [0.02, 0.015, 0.0001]);
-    let thin = MeshConfig { voxel_mm: Some(1.0), views: 24, view_px: 160, ..MeshConfig::default() };
+    let thin = MeshConfig {
+        voxel_mm: Some(1.0),
+        views: 24,
+        view_px: 160,
+        ..MeshConfig::default()
+    };
     match mesh_model(&sheet, &thin) {
-        Ok(m) => assert!(m.stats.warnings.iter().any(|w| w.contains("--voxel-mm")), "{:?}", m.stats),
+        Ok(m) => assert!(
+            m.stats.warnings.iter().any(|w| w.contains("--voxel-mm")),
+            "{:?}",
+            m.stats
+        ),
         Err(e) => assert!(e.to_string().contains("--voxel-mm"), "{e}"),
     }
 }

@@ -76,7 +76,10 @@ pub fn surface_deviation(
             .iter()
             .map(|&p| (reference.signed_distance(p).0, p))
             .collect();
-        aligned.colors = deviations.iter().map(|(d, _)| diverging(*d / COLOUR_SCALE_M)).collect();
+        aligned.colors = deviations
+            .iter()
+            .map(|(d, _)| diverging(*d / COLOUR_SCALE_M))
+            .collect();
         let ply = out.join(format!("deviation_{i}.ply"));
         omniscan_core::io::write_atomic(&ply, &omniscan_mesh::files::ply(&aligned))?;
         report.push(summary(i, ply, &deviations));
@@ -92,7 +95,11 @@ const COLOUR_SCALE_M: f32 = (GEOMETRIC_DEVIATION_MM * 2e-3) as f32;
 /// Blue (inwards) through white to red (outwards), saturating at ±1.
 fn diverging(t: f32) -> [f32; 3] {
     let t = t.clamp(-1.0, 1.0);
-    if t >= 0.0 { [1.0, 1.0 - t, 1.0 - t] } else { [1.0 + t, 1.0 + t, 1.0] }
+    if t >= 0.0 {
+        [1.0, 1.0 - t, 1.0 - t]
+    } else {
+        [1.0 + t, 1.0 + t, 1.0]
+    }
 }
 
 fn summary(model_index: usize, ply: PathBuf, deviations: &Samples) -> CopyDeviation {
@@ -120,7 +127,12 @@ fn summary(model_index: usize, ply: PathBuf, deviations: &Samples) -> CopyDeviat
 fn deviation_near(samples: &Samples, centre: [f64; 3], radius: f64) -> f64 {
     samples
         .iter()
-        .filter(|(_, p)| (0..3).map(|k| (p[k] as f64 - centre[k]).powi(2)).sum::<f64>() <= radius * radius)
+        .filter(|(_, p)| {
+            (0..3)
+                .map(|k| (p[k] as f64 - centre[k]).powi(2))
+                .sum::<f64>()
+                <= radius * radius
+        })
         .map(|(d, _)| d.abs() as f64)
         .fold(0.0, f64::max)
 }
@@ -146,7 +158,12 @@ fn type_regions(inspection: &mut Inspection, samples: &[Samples], units_per_metr
         }
     }
     if let Some(d) = verdict.defective {
-        let kinds = |kind: Kind| verdict.regions.iter().any(|r| r.significant && r.model == d && r.kind == kind);
+        let kinds = |kind: Kind| {
+            verdict
+                .regions
+                .iter()
+                .any(|r| r.significant && r.model == d && r.kind == kind)
+        };
         verdict.defect_type = match (kinds(Kind::Geometric), kinds(Kind::Visual)) {
             (true, true) => "both",
             (true, false) => "geometric",

@@ -79,7 +79,10 @@ fn check_settings(settings: &MeshSettings) -> Result<()> {
         bail!("--faces {}: a closed mesh needs at least 4", settings.faces);
     }
     if settings.views < 6 {
-        bail!("--views {}: at least 6 views are needed to see all round", settings.views);
+        bail!(
+            "--views {}: at least 6 views are needed to see all round",
+            settings.views
+        );
     }
     if !(32..=4096).contains(&settings.view_px) {
         bail!("--view-px {}: give 32-4096 pixels", settings.view_px);
@@ -104,7 +107,9 @@ fn base_name(model: &Path, name: &Option<String>) -> Result<String> {
             .chars()
             .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
     {
-        bail!("--name `{name}`: use letters, digits, `_` and `-` (it names files and the asset's body)");
+        bail!(
+            "--name `{name}`: use letters, digits, `_` and `-` (it names files and the asset's body)"
+        );
     }
     Ok(name)
 }
@@ -121,7 +126,8 @@ fn mesh_and_write(
     let splats = read_splats(model)?;
     progress.start("meshing", 0, "");
     progress.message("rendering depth all round, fusing, extracting");
-    let meshed = mesh_model(&splats, &settings.config()).with_context(|| format!("{}", model.display()))?;
+    let meshed =
+        mesh_model(&splats, &settings.config()).with_context(|| format!("{}", model.display()))?;
     progress.message("baking the texture, writing");
     let texture = bake(&meshed.mesh, Some(&meshed.tsdf), settings.texture_px);
     let files = write_all(out, &name, &meshed.mesh, &texture)?;
@@ -135,7 +141,12 @@ fn mesh_and_write(
 
 /// Meshes the twin `model` into `out` (see the module docs); writes
 /// `mesh.json` there too.
-pub fn mesh(model: &Path, out: &Path, settings: &MeshSettings, progress: &dyn Progress) -> Result<MeshReport> {
+pub fn mesh(
+    model: &Path,
+    out: &Path,
+    settings: &MeshSettings,
+    progress: &dyn Progress,
+) -> Result<MeshReport> {
     let _lock = omniscan_core::lock::OutputLock::folder(out, "mesh")?;
     let (meshed, files, _) = mesh_and_write(model, out, settings, progress)?;
     let report = MeshReport {
@@ -190,7 +201,12 @@ pub struct AssetReport {
 /// Meshes the twin `model` and writes a simulation asset to `out`: the
 /// mesh files, `NAME_collision_K.obj`, `NAME.urdf`, `NAME.xml` (MJCF) and
 /// `asset.json`.
-pub fn asset(model: &Path, out: &Path, settings: &AssetSettings, progress: &dyn Progress) -> Result<AssetReport> {
+pub fn asset(
+    model: &Path,
+    out: &Path,
+    settings: &AssetSettings,
+    progress: &dyn Progress,
+) -> Result<AssetReport> {
     let start = Instant::now();
     let from = match (settings.density_kg_m3, settings.mass_kg) {
         (Some(_), Some(_)) => bail!("give --density-kg-m3 or --mass-kg, not both"),
@@ -208,10 +224,17 @@ pub fn asset(model: &Path, out: &Path, settings: &AssetSettings, progress: &dyn 
     let (meshed, files, name) = mesh_and_write(model, out, &settings.mesh, progress)?;
     let mass = mass_properties(&meshed.mesh, from)?;
     progress.start("convex decomposition", 0, "");
-    let hulls = convex_decomposition(&meshed.mesh, settings.hulls, settings.decomposition_resolution);
+    let hulls = convex_decomposition(
+        &meshed.mesh,
+        settings.hulls,
+        settings.decomposition_resolution,
+    );
     progress.finish();
     if hulls.is_empty() {
-        bail!("{}: the convex decomposition found no piece", model.display());
+        bail!(
+            "{}: the convex decomposition found no piece",
+            model.display()
+        );
     }
     let hull_volume: f64 = hulls.iter().map(omniscan_mesh::topology::volume).sum();
     let collision = write_hulls(out, &name, &hulls)?;
@@ -225,7 +248,10 @@ pub fn asset(model: &Path, out: &Path, settings: &AssetSettings, progress: &dyn 
             .to_string(),
         collision_meshes: collision.clone(),
     };
-    let (urdf_path, mjcf_path) = (out.join(format!("{name}.urdf")), out.join(format!("{name}.xml")));
+    let (urdf_path, mjcf_path) = (
+        out.join(format!("{name}.urdf")),
+        out.join(format!("{name}.xml")),
+    );
     omniscan_core::io::write_atomic(&urdf_path, urdf(&layout, &mass).as_bytes())?;
     omniscan_core::io::write_atomic(&mjcf_path, mjcf(&layout, &mass).as_bytes())?;
     let report = AssetReport {

@@ -271,7 +271,12 @@ pub fn inspect(
         Vec::new()
     } else {
         progress.start("meshing the copies for their surface deviation", 0, "");
-        let d = crate::deviation::surface_deviation(&splats, &mut inspection, resolved.units_per_metre, out);
+        let d = crate::deviation::surface_deviation(
+            &splats,
+            &mut inspection,
+            resolved.units_per_metre,
+            out,
+        );
         progress.finish();
         // The verdict stands without it: say why it is missing.
         d.unwrap_or_else(|e| {

@@ -652,7 +652,11 @@ fn print_mesh(report: &omniscan_pipeline::geometry::MeshReport) {
         s.extent_mm[2],
         s.area_mm2,
         s.volume_mm3,
-        if s.topology.is_watertight() { "watertight" } else { "NOT watertight" }
+        if s.topology.is_watertight() {
+            "watertight"
+        } else {
+            "NOT watertight"
+        }
     );
     println!(
         "  {:.2} mm voxels, {} views; closed over {:.1} mm² no view saw (marked `unseen` in the PLY); {:.1} s",

@@ -1928,15 +1928,35 @@ fn mesh_and_asset_write_a_closed_mesh_and_refuse_bad_models() {
     let m = model.to_str().unwrap();
     let out = dir.path().join("asset");
     let o = omniscan(&[
-        "asset", m, "--out", out.to_str().unwrap(), "--faces", "3000", "--views", "24", "--view-px", "160",
-        "--mass-kg", "0.2", "--json",
+        "asset",
+        m,
+        "--out",
+        out.to_str().unwrap(),
+        "--faces",
+        "3000",
+        "--views",
+        "24",
+        "--view-px",
+        "160",
+        "--mass-kg",
+        "0.2",
+        "--json",
     ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(report["mesh"]["topology"]["boundary_edges"], 0);
     assert_eq!(report["mesh"]["topology"]["non_manifold_edges"], 0);
     assert!((report["mass"]["mass_kg"].as_f64().unwrap() - 0.2).abs() < 1e-9);
-    for f in ["part.obj", "part.mtl", "part.png", "part.ply", "part.glb", "part.urdf", "part.xml", "asset.json"] {
+    for f in [
+        "part.obj",
+        "part.mtl",
+        "part.png",
+        "part.ply",
+        "part.glb",
+        "part.urdf",
+        "part.xml",
+        "asset.json",
+    ] {
         assert!(out.join(f).is_file(), "{f}");
     }
 
@@ -1945,13 +1965,31 @@ fn mesh_and_asset_write_a_closed_mesh_and_refuse_bad_models() {
     let faint_path = dir.path().join("faint.ply");
     omniscan_splat::ply::write_splats(&faint_path, &faint).unwrap();
     let mesh_dir = dir.path().join("m");
-    let o = omniscan(&["mesh", faint_path.to_str().unwrap(), "--out", mesh_dir.to_str().unwrap()]);
+    let o = omniscan(&[
+        "mesh",
+        faint_path.to_str().unwrap(),
+        "--out",
+        mesh_dir.to_str().unwrap(),
+    ]);
     assert_refused(&o, "opaque splats");
     assert_refused(&o, "faint.ply");
     let o = omniscan(&["mesh", "no-such.ply", "--out", mesh_dir.to_str().unwrap()]);
     assert_refused(&o, "no-such.ply");
-    let o = omniscan(&["asset", m, "--out", mesh_dir.to_str().unwrap(), "--density-kg-m3=-1"]);
+    let o = omniscan(&[
+        "asset",
+        m,
+        "--out",
+        mesh_dir.to_str().unwrap(),
+        "--density-kg-m3=-1",
+    ]);
     assert_refused(&o, "--density-kg-m3 must be positive");
-    let o = omniscan(&["mesh", m, "--out", mesh_dir.to_str().unwrap(), "--name", "../x"]);
+    let o = omniscan(&[
+        "mesh",
+        m,
+        "--out",
+        mesh_dir.to_str().unwrap(),
+        "--name",
+        "../x",
+    ]);
     assert_refused(&o, "--name");
 }
