@@ -48,8 +48,8 @@ def convert(model: PathLike, *, out: PathLike, spz_version: int = 4, progress: A
 def view(models: Iterable[PathLike], *, out: PathLike, names: Sequence[Any] = [], title: Optional[Any] = None, progress: Any = None) -> Report:
     """Writes ``out``, one HTML file that shows ``models`` in 3D in any ..."""
 
-def mesh(model: PathLike, *, out: PathLike, faces: int = 20000, name: Optional[Any] = None, scale_m_per_unit: float = 1.0, texture_px: int = 2048, view_px: int = 320, views: int = 64, voxel_mm: Optional[Any] = None, progress: Any = None) -> Report:
+def mesh(model: PathLike, *, out: PathLike, faces: int = 20000, inside_vote: float = 0.65, name: Optional[Any] = None, scale_m_per_unit: float = 1.0, texture_px: int = 2048, view_px: int = 320, views: int = 64, voxel_mm: Optional[Any] = None, progress: Any = None) -> Report:
     """Writes a watertight, coloured triangle mesh of the twin ``model`` ..."""
 
-def asset(model: PathLike, *, out: PathLike, decomposition_resolution: int = 64, density_kg_m3: Optional[Any] = None, faces: int = 20000, hulls: int = 16, mass_kg: Optional[Any] = None, name: Optional[Any] = None, scale_m_per_unit: float = 1.0, texture_px: int = 2048, view_px: int = 320, views: int = 64, voxel_mm: Optional[Any] = None, progress: Any = None) -> Report:
+def asset(model: PathLike, *, out: PathLike, decomposition_resolution: int = 64, density_kg_m3: Optional[Any] = None, faces: int = 20000, hulls: int = 16, inside_vote: float = 0.65, mass_kg: Optional[Any] = None, name: Optional[Any] = None, scale_m_per_unit: float = 1.0, texture_px: int = 2048, view_px: int = 320, views: int = 64, voxel_mm: Optional[Any] = None, progress: Any = None) -> Report:
     """Writes a simulation asset of the twin ``model`` into the folder ..."""

@@ -8,6 +8,7 @@
 
 use std::path::{Path, PathBuf};
 
+use image::ImageEncoder;
 use serde_json::json;
 
 use omniscan_core::io::write_atomic;
@@ -64,8 +65,6 @@ fn encode_png(texture: &Texture, path: &Path) -> Result<Vec<u8>, MeshError> {
         })?;
     Ok(png)
 }
-
-use image::ImageEncoder;
 
 fn mtl(name: &str) -> String {
     format!(

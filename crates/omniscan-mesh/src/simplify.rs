@@ -14,6 +14,7 @@ use std::cmp::Ordering;
 use std::collections::BinaryHeap;
 
 use crate::TriMesh;
+use crate::extract::{cross, dot, sub};
 
 /// A plane-distance quadric: the symmetric 4x4 matrix's upper triangle.
 #[derive(Debug, Clone, Copy, Default)]
@@ -108,22 +109,6 @@ struct Decimator {
     stamp: Vec<u32>,
     heap: BinaryHeap<Candidate>,
     live: usize,
-}
-
-fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
 impl Decimator {

@@ -29,6 +29,7 @@ pub(crate) use default_from_flags;
 mod tests {
     use crate::align::{AlignSettings, Method};
     use crate::evaluate::EvalSettings;
+    use crate::geometry::{AssetSettings, MeshSettings};
     use crate::inspect::{InspectionSettings, MakeCopySettings};
     use crate::mask::{GripperMethod, MaskingSettings};
     use crate::render::RenderSettings;
@@ -59,6 +60,28 @@ mod tests {
             (8.0, 0.89)
         );
         assert_eq!(PlanSettings::default().wrist_angles, 20);
+        let mesh = MeshSettings::default();
+        assert_eq!(
+            (mesh.faces, mesh.views, mesh.view_px, mesh.texture_px),
+            (20_000, 64, 320, 2048)
+        );
+        assert_eq!(
+            (mesh.voxel_mm, mesh.scale_m_per_unit, mesh.inside_vote),
+            (None, 1.0, 0.65)
+        );
+        let asset = AssetSettings::default();
+        assert_eq!(
+            (
+                asset.hulls,
+                asset.decomposition_resolution,
+                asset.density_kg_m3,
+                asset.mass_kg
+            ),
+            (16, 64, None, None)
+        );
+        let from_json: AssetSettings =
+            serde_json::from_str(r#"{"faces": 100, "hulls": 4}"#).unwrap();
+        assert_eq!((from_json.mesh.faces, from_json.hulls), (100, 4));
         let _ = (
             TrainSettings::default(),
             RenderSettings::default(),
