@@ -41,13 +41,14 @@ pub fn extract(tsdf: &Tsdf) -> TriMesh {
     if nx < 2 || ny < 2 || nz < 2 {
         return TriMesh::default();
     }
+    let signs = tetrahedron_signs();
     let slabs: Vec<Vec<EdgeTriangle>> = (0..nz - 1)
         .into_par_iter()
         .map(|z| {
             let mut out = Vec::new();
             for y in 0..ny - 1 {
                 for x in 0..nx - 1 {
-                    cube_triangles(tsdf, [x, y, z], &mut out);
+                    cube_triangles(tsdf, [x, y, z], &signs, &mut out);
                 }
             }
             out
@@ -78,7 +79,7 @@ fn is_inside(sdf: f32) -> bool {
 }
 
 /// Appends the triangles of the cube whose lowest corner is voxel `at`.
-fn cube_triangles(tsdf: &Tsdf, at: [usize; 3], out: &mut Vec<EdgeTriangle>) {
+fn cube_triangles(tsdf: &Tsdf, at: [usize; 3], signs: &[f64; 6], out: &mut Vec<EdgeTriangle>) {
     let g = &tsdf.grid;
     let corner = |c: usize| {
         g.index(
@@ -92,7 +93,7 @@ fn cube_triangles(tsdf: &Tsdf, at: [usize; 3], out: &mut Vec<EdgeTriangle>) {
     if inside.iter().all(|&b| b) || inside.iter().all(|&b| !b) {
         return;
     }
-    for (tet, sign) in TETRAHEDRA.iter().zip(tetrahedron_signs()) {
+    for (tet, &sign) in TETRAHEDRA.iter().zip(signs) {
         // Inside corners first, keeping track of the permutation's parity:
         // orientation is decided combinatorially, so a triangle too thin
         // for its normal to be computed is still oriented like its
