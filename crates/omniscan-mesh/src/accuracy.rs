@@ -14,7 +14,7 @@ use parry3d::math::Vector;
 use parry3d::query::PointQuery;
 use parry3d::shape::{TriMesh as ParryMesh, TriMeshFlags};
 
-use crate::topology::{area, topology, volume};
+use crate::topology::{area, topology, triangle_area, volume};
 use crate::{MeshError, TriMesh};
 
 /// A surface ready for nearest-point queries.
@@ -54,15 +54,7 @@ pub fn sample_surface(mesh: &TriMesh, count: usize, seed: u64) -> Vec<[f32; 3]> 
     let mut cumulative = Vec::with_capacity(mesh.triangles.len());
     let mut total = 0.0f64;
     for t in &mesh.triangles {
-        let [a, b, c] = t.map(|v| mesh.positions[v as usize].map(f64::from));
-        let u = [0, 1, 2].map(|k| b[k] - a[k]);
-        let w = [0, 1, 2].map(|k| c[k] - a[k]);
-        let n = [
-            u[1] * w[2] - u[2] * w[1],
-            u[2] * w[0] - u[0] * w[2],
-            u[0] * w[1] - u[1] * w[0],
-        ];
-        total += 0.5 * (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+        total += triangle_area(mesh, t);
         cumulative.push(total);
     }
     if total <= 0.0 {

@@ -115,13 +115,14 @@ fn triangle_terms(mesh: &TriMesh, t: &[u32; 3]) -> (f64, f64) {
     (dot(n, n).sqrt(), dot(a, cross(b, c)))
 }
 
+/// The area of triangle `t`, m².
+pub fn triangle_area(mesh: &TriMesh, t: &[u32; 3]) -> f64 {
+    triangle_terms(mesh, t).0 / 2.0
+}
+
 /// Surface area, m².
 pub fn area(mesh: &TriMesh) -> f64 {
-    mesh.triangles
-        .iter()
-        .map(|t| triangle_terms(mesh, t).0)
-        .sum::<f64>()
-        / 2.0
+    mesh.triangles.iter().map(|t| triangle_area(mesh, t)).sum()
 }
 
 /// Area of the triangles marked unseen, m².
@@ -130,9 +131,8 @@ pub fn unseen_area(mesh: &TriMesh) -> f64 {
         .iter()
         .zip(&mesh.unseen)
         .filter(|(_, u)| **u)
-        .map(|(t, _)| triangle_terms(mesh, t).0)
-        .sum::<f64>()
-        / 2.0
+        .map(|(t, _)| triangle_area(mesh, t))
+        .sum()
 }
 
 /// The volume a closed, outward-oriented mesh encloses, m³ (by the
