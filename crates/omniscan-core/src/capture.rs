@@ -66,6 +66,11 @@ pub struct CameraSpec {
     pub intrinsics: Intrinsics,
     /// T_c: camera-to-world, OpenCV camera axes, metres.
     pub camera_to_world: RigidTransform,
+    /// The lens's distortion (the images are as the lens saw them); absent
+    /// for a pinhole camera, as the simulator renders. Stages that need a
+    /// pinhole resample each image as they read it ([`crate::lens`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub distortion: Option<crate::lens::Distortion>,
 }
 
 /// Gripper poses at the moment of handover.
@@ -266,6 +271,11 @@ impl Capture {
         &self.file.camera.intrinsics
     }
 
+    /// The lens's distortion, `None` for a pinhole camera.
+    pub fn distortion(&self) -> Option<&crate::lens::Distortion> {
+        self.file.camera.distortion.as_ref()
+    }
+
     /// T_c, camera to world.
     pub fn camera_to_world(&self) -> Pose {
         self.file.camera.camera_to_world.0
@@ -313,6 +323,10 @@ impl Capture {
         }
         if let Err(e) = f.camera.intrinsics.validate() {
             problems.push(e);
+        } else if let Some(d) = &f.camera.distortion
+            && let Err(e) = crate::lens::check_distortion(d, &f.camera.intrinsics)
+        {
+            problems.push(format!("camera.distortion: {e}"));
         }
         if f.frames.is_empty() {
             problems.push("`frames` is empty: the capture has no scan trajectory".into());

@@ -27,12 +27,17 @@ use crate::error::{CoreError, Result};
 use crate::image_io::{DepthMm, Mask, RgbImage};
 
 /// A lens's distortion, in OpenCV's normalised image coordinates (x = X/Z,
-/// y = Y/Z of the ray in camera axes).
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// y = Y/Z of the ray in camera axes). In `capture.json` it is the camera's
+/// `distortion`: `{"model": "opencv", "k1": …, "k2": …, "k3": …, "p1": …,
+/// "p2": …}` or `{"model": "opencv_fisheye", "k1": …, "k2": …, "k3": …,
+/// "k4": …}` (the coefficients are unitless).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(tag = "model", deny_unknown_fields)]
 pub enum Distortion {
     /// With r² = x² + y²:
     /// x_d = x (1 + k1 r² + k2 r⁴ + k3 r⁶) + 2 p1 x y + p2 (r² + 2 x²),
     /// y_d = y (1 + k1 r² + k2 r⁴ + k3 r⁶) + p1 (r² + 2 y²) + 2 p2 x y.
+    #[serde(rename = "opencv")]
     RadialTangential {
         k1: f64,
         k2: f64,
@@ -42,6 +47,7 @@ pub enum Distortion {
     },
     /// With θ = atan r: θ_d = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸), and
     /// (x_d, y_d) = (θ_d / r) (x, y).
+    #[serde(rename = "opencv_fisheye")]
     Fisheye { k1: f64, k2: f64, k3: f64, k4: f64 },
 }
 
@@ -99,6 +105,33 @@ impl Distortion {
             .find(|&r| self.radial_slope(r) <= 0.0)
             .map_or(r_max, |r| r - r_max / f64::from(STEPS))
     }
+}
+
+/// Checks a lens of a camera with `intrinsics`: finite coefficients, and a
+/// pinhole image of which the lens saw at least half (a sign flipped in a
+/// file folds the image over itself).
+pub fn check_distortion(
+    distortion: &Distortion,
+    intrinsics: &crate::camera::Intrinsics,
+) -> std::result::Result<(), String> {
+    let coefficients = match *distortion {
+        Distortion::RadialTangential { k1, k2, k3, p1, p2 } => vec![k1, k2, k3, p1, p2],
+        Distortion::Fisheye { k1, k2, k3, k4 } => vec![k1, k2, k3, k4],
+    };
+    if coefficients.iter().any(|c| !c.is_finite()) {
+        return Err(format!(
+            "coefficients must be finite, found {coefficients:?}"
+        ));
+    }
+    let k = intrinsics;
+    let share = Undistortion::unseen_share(distortion, [k.fx, k.fy, k.cx, k.cy], k.width, k.height);
+    if share > 0.5 {
+        return Err(format!(
+            "the lens leaves {:.0}% of the pinhole image unseen; check the coefficients and the intrinsics",
+            share * 100.0
+        ));
+    }
+    Ok(())
 }
 
 /// Where each pixel of the pinhole image reads a distorted photo.

@@ -632,6 +632,7 @@ impl Simulation {
         CaptureFile {
             version: omniscan_core::capture::CAPTURE_VERSION,
             camera: CameraSpec {
+                distortion: None,
                 intrinsics: self.intrinsics,
                 camera_to_world: RigidTransform(self.camera_to_world),
             },
