@@ -44,6 +44,12 @@ impl Failure {
                     omniscan_mesh::MeshError::Input(_) => Failure::Input,
                 };
             }
+            if let Some(e) = cause.downcast_ref::<omniscan_ros::RosError>() {
+                return match e {
+                    omniscan_ros::RosError::Core(e) => core(e),
+                    _ => Failure::Input,
+                };
+            }
             if cause
                 .downcast_ref::<omniscan_register::RegisterError>()
                 .is_some()

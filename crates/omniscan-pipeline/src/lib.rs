@@ -14,6 +14,7 @@
 //! | make a (defective) copy | [`inspect::make_copy`] | |
 //! | a watertight, coloured mesh of a twin | [`geometry::mesh`] | |
 //! | a simulation asset (URDF, MJCF) of a twin | [`geometry::asset`] | |
+//! | a ROS 2 recording to a capture | [`import::import_ros2`] | |
 //!
 //! Each stage takes one settings struct: its fields carry their unit in
 //! their name or doc, and its `Default` is the documented default. The same
@@ -43,6 +44,7 @@ pub mod deviation;
 pub mod evaluate;
 pub mod failure;
 pub mod geometry;
+pub mod import;
 pub mod inspect;
 pub mod mask;
 pub mod memory;

@@ -27,41 +27,55 @@ use crate::tf::{TfTree, seconds};
 
 /// Where in the recording the scan is; every field is a flag of
 /// `omniscan import ros2`, and `Default` is the documented convention.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(clap::Args, Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct Ros2ImportSettings {
     /// Colour images: `sensor_msgs/msg/Image` (rgb8, bgr8, rgba8, bgra8,
     /// mono8) or `sensor_msgs/msg/CompressedImage` (JPEG, PNG).
+    #[arg(long, default_value_t = Ros2ImportSettings::default().image_topic)]
     pub image_topic: String,
     /// Depth images registered to the colour camera (16UC1 millimetres or
     /// 32FC1 metres); used when the bag has them.
+    #[arg(long, default_value_t = Ros2ImportSettings::default().depth_topic)]
     pub depth_topic: String,
     /// The colour camera's `sensor_msgs/msg/CameraInfo`.
+    #[arg(long, default_value_t = Ros2ImportSettings::default().camera_info_topic)]
     pub camera_info_topic: String,
     /// The scan's phases, `std_msgs/msg/String`, each in force from the
     /// time it was recorded on.
+    #[arg(long, default_value_t = Ros2ImportSettings::default().phase_topic)]
     pub phase_topic: String,
     /// `sensor_msgs/msg/JointState`, for the finger opening; used when present.
+    #[arg(long, default_value_t = Ros2ImportSettings::default().joint_states_topic)]
     pub joint_states_topic: String,
     /// The frame the capture's poses are in.
+    #[arg(long, default_value_t = Ros2ImportSettings::default().world_frame)]
     pub world_frame: String,
     /// The left gripper's TCP frame (what `gripper_to_world` means).
+    #[arg(long, default_value_t = Ros2ImportSettings::default().left_gripper_frame)]
     pub left_gripper_frame: String,
     /// The right gripper's TCP frame.
+    #[arg(long, default_value_t = Ros2ImportSettings::default().right_gripper_frame)]
     pub right_gripper_frame: String,
     /// The longest gap between TF samples interpolated over, seconds.
+    #[arg(long, default_value_t = Ros2ImportSettings::default().max_tf_gap_s)]
     pub max_tf_gap_s: f64,
     /// A depth image belongs to the colour image whose stamp is within this, seconds.
+    #[arg(long, default_value_t = Ros2ImportSettings::default().depth_sync_s)]
     pub depth_sync_s: f64,
     /// The joint whose position gives the left gripper's opening.
+    #[arg(long, default_value_t = Ros2ImportSettings::default().left_finger_joint)]
     pub left_finger_joint: String,
     /// The joint whose position gives the right gripper's opening.
+    #[arg(long, default_value_t = Ros2ImportSettings::default().right_finger_joint)]
     pub right_finger_joint: String,
     /// Finger opening per unit of the joint's position, metres per joint
     /// unit (2 for the YuMi, whose joint is each finger's travel in metres).
+    #[arg(long, default_value_t = Ros2ImportSettings::default().opening_m_per_joint_unit)]
     pub opening_m_per_joint_unit: f64,
     /// The camera must stay put: its pose may drift this much over the scan,
     /// millimetres (and a tenth of this in degrees).
+    #[arg(long, default_value_t = Ros2ImportSettings::default().camera_drift_mm)]
     pub camera_drift_mm: f64,
 }
 

@@ -44,6 +44,23 @@ struct Cli {
 }
 
 #[derive(Subcommand)]
+enum ImportSource {
+    /// A ROS 2 bag (rosbag2: MCAP or sqlite3, a file or its folder) to a capture: images, depth and camera_info from the camera's topics, poses from TF at each image's stamp, the scan's phases from /omniscan/phase. The capture appears whole or not at all. docs/ros2.md
+    Ros2 {
+        /// The bag: a .mcap or .db3 file, or the rosbag2 folder holding them.
+        bag: PathBuf,
+        /// The capture folder to create (must not exist).
+        #[arg(long)]
+        out: PathBuf,
+        #[command(flatten)]
+        settings: omniscan_pipeline::import::Ros2ImportSettings,
+        /// Print the report as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+#[derive(Subcommand)]
 enum Command {
     /// Run the whole pipeline on a built-in object: simulate a scan, mask it, merge the two arms, export it for nerfstudio, train a first twin.
     Demo {
@@ -119,6 +136,9 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Make a capture from a real robot's recording. docs/ros2.md
+    #[command(subcommand)]
+    Import(ImportSource),
     /// Gripper and object masks for every frame of a capture (kinematic gripper masks, the paper's object pipeline).
     Mask(MaskArgs),
     /// Write a nerfstudio transforms.json (OpenGL camera axes, object masks; gripper masks under omniscan's own gripper_mask_path, which nerfstudio ignores).
@@ -367,6 +387,12 @@ fn run(cli: Cli) -> Result<()> {
             settings,
             json,
         } => asset(&model, &out, &settings, json, &bars),
+        Command::Import(ImportSource::Ros2 {
+            bag,
+            out,
+            settings,
+            json,
+        }) => import_ros2(&bag, &out, &settings, json, &bars),
         Command::Mask(args) => mask(args, &bars),
         Command::ExportNerfstudio {
             capture,
@@ -680,6 +706,35 @@ fn mesh(
         return print_json(&report);
     }
     print_mesh(&report);
+    Ok(())
+}
+
+fn import_ros2(
+    bag: &std::path::Path,
+    out: &std::path::Path,
+    settings: &omniscan_pipeline::import::Ros2ImportSettings,
+    json: bool,
+    bars: &omniscan_pipeline::Bars,
+) -> Result<()> {
+    let report = omniscan_pipeline::import::import_ros2(bag, out, settings, bars)?;
+    if json {
+        return print_json(&report);
+    }
+    println!(
+        "imported {}: {} left and {} right frames, {} empty; {} with depth, {} with the finger opening; {} images outside the scan phases skipped; {}; {:.1} s",
+        report.capture.display(),
+        report.left_frames,
+        report.right_frames,
+        report.empty_frames,
+        report.frames_with_depth,
+        report.frames_with_opening,
+        report.skipped_images,
+        match report.distortion {
+            Some(_) => "lens distortion recorded",
+            None => "pinhole camera",
+        },
+        report.seconds
+    );
     Ok(())
 }
 

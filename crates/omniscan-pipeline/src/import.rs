@@ -1,0 +1,26 @@
+//! Recordings of real robots to captures: `omniscan import ros2` (a rosbag2
+//! recording, MCAP or sqlite3; docs/ros2.md). The work is
+//! [`omniscan_ros`]'s; this is the stage's entry with progress.
+
+use std::path::Path;
+
+use anyhow::{Context, Result};
+pub use omniscan_ros::{ImportReport, Ros2ImportSettings};
+
+use crate::Progress;
+
+/// Imports the ROS 2 bag at `bag` into a new capture folder `out` (which
+/// must not exist; it appears whole or not at all).
+pub fn import_ros2(
+    bag: &Path,
+    out: &Path,
+    settings: &Ros2ImportSettings,
+    progress: &dyn Progress,
+) -> Result<ImportReport> {
+    progress.start("reading the bag", 0, "images");
+    let report =
+        omniscan_ros::import_ros2(bag, out, settings, &|images| progress.set(images as u64))
+            .with_context(|| format!("importing {}", bag.display()));
+    progress.finish();
+    report
+}
