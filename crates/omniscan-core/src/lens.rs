@@ -78,6 +78,32 @@ impl Distortion {
         }
     }
 
+    /// The pinhole point whose ray the lens puts at `(x_d, y_d)`: the
+    /// inverse of [`distort`](Self::distort), by Newton's method from the
+    /// distorted point (a finite-difference Jacobian); `None` where it does
+    /// not converge to within 1e-10, as past the radius where the lens folds.
+    pub fn undistort(&self, x_d: f64, y_d: f64) -> Option<[f64; 2]> {
+        const H: f64 = 1e-7;
+        let (mut x, mut y) = (x_d, y_d);
+        for _ in 0..50 {
+            let [fx, fy] = self.distort(x, y);
+            let (rx, ry) = (fx - x_d, fy - y_d);
+            if rx.hypot(ry) < 1e-10 {
+                return Some([x, y]);
+            }
+            let [ax, ay] = self.distort(x + H, y);
+            let [bx, by] = self.distort(x, y + H);
+            let (j00, j10, j01, j11) = ((ax - fx) / H, (ay - fy) / H, (bx - fx) / H, (by - fy) / H);
+            let det = j00 * j11 - j01 * j10;
+            if !det.is_finite() || det.abs() < 1e-12 {
+                return None;
+            }
+            x -= (j11 * rx - j01 * ry) / det;
+            y -= (-j10 * rx + j00 * ry) / det;
+        }
+        None
+    }
+
     /// The sign of the radial map's slope at pinhole radius `r`: past the
     /// first radius where it is not positive, rays further out land back
     /// inside, on pixels that already belong to nearer rays.
@@ -534,6 +560,70 @@ mod tests {
         assert!(
             error.contains("41x30") && error.contains("40x30"),
             "{error}"
+        );
+    }
+
+    #[test]
+    fn undistort_inverts_distort_for_both_models() {
+        let lenses = [
+            Distortion::RadialTangential {
+                k1: -0.28,
+                k2: 0.07,
+                k3: 0.0,
+                p1: 0.001,
+                p2: -0.0008,
+            },
+            Distortion::Fisheye {
+                k1: 0.05,
+                k2: -0.01,
+                k3: 0.002,
+                k4: 0.0,
+            },
+        ];
+        for lens in lenses {
+            for (x, y) in [(0.0, 0.0), (0.31, -0.2), (-0.45, 0.33), (0.5, 0.38)] {
+                let [xd, yd] = lens.distort(x, y);
+                let [ux, uy] = lens.undistort(xd, yd).unwrap();
+                assert!(
+                    (ux - x).abs() < 1e-9 && (uy - y).abs() < 1e-9,
+                    "{lens:?} {x} {y}: {ux} {uy}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn a_lens_in_a_capture_file_reads_back_and_is_checked() {
+        let lens = Distortion::Fisheye {
+            k1: 0.05,
+            k2: -0.01,
+            k3: 0.002,
+            k4: 0.0,
+        };
+        let json = serde_json::to_value(lens).unwrap();
+        assert_eq!(json["model"], "opencv_fisheye");
+        assert_eq!(serde_json::from_value::<Distortion>(json).unwrap(), lens);
+        let bad =
+            serde_json::json!({"model": "opencv", "k1": 0.1, "k2": 0.0, "k3": 0.0, "p1": 0.0});
+        assert!(
+            serde_json::from_value::<Distortion>(bad)
+                .unwrap_err()
+                .to_string()
+                .contains("p2")
+        );
+        let k = crate::camera::Intrinsics::from_horizontal_fov(640, 480, 1.2);
+        assert!(check_distortion(&lens, &k).is_ok());
+        let folded = Distortion::RadialTangential {
+            k1: -3.0,
+            k2: 0.0,
+            k3: 0.0,
+            p1: 0.0,
+            p2: 0.0,
+        };
+        assert!(
+            check_distortion(&folded, &k)
+                .unwrap_err()
+                .contains("unseen")
         );
     }
 

@@ -28,6 +28,10 @@ struct TransformsFile {
     h: u32,
     k1: f64,
     k2: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    k3: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    k4: Option<f64>,
     p1: f64,
     p2: f64,
     frames: Vec<TransformsFrame>,
@@ -168,18 +172,32 @@ pub fn export_nerfstudio(
             gripper_mask_path,
         });
     }
+    // nerfstudio's names for the capture's lens (its OPENCV camera has k3
+    // too; OPENCV_FISHEYE has k1-k4 and no p1, p2).
+    use crate::lens::Distortion;
+    let (camera_model, [k1, k2, k3, k4, p1, p2]) = match capture.distortion() {
+        None => ("OPENCV", [0.0; 6]),
+        Some(&Distortion::RadialTangential { k1, k2, k3, p1, p2 }) => {
+            ("OPENCV", [k1, k2, k3, 0.0, p1, p2])
+        }
+        Some(&Distortion::Fisheye { k1, k2, k3, k4 }) => {
+            ("OPENCV_FISHEYE", [k1, k2, k3, k4, 0.0, 0.0])
+        }
+    };
     let file = TransformsFile {
-        camera_model: "OPENCV",
+        camera_model,
         fl_x: k.fx,
         fl_y: k.fy,
         cx: k.cx,
         cy: k.cy,
         w: k.width,
         h: k.height,
-        k1: 0.0,
-        k2: 0.0,
-        p1: 0.0,
-        p2: 0.0,
+        k1,
+        k2,
+        k3: (k3 != 0.0).then_some(k3),
+        k4: (camera_model == "OPENCV_FISHEYE").then_some(k4),
+        p1,
+        p2,
         frames,
     };
     let transforms = out.join("transforms.json");

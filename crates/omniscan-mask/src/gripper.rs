@@ -19,6 +19,7 @@
 use nalgebra::Isometry3;
 use omniscan_core::Intrinsics;
 use omniscan_core::image_io::RgbImage;
+use omniscan_core::lens::Distortion;
 use omniscan_scene::gripper::GripperModel;
 use omniscan_scene::raster::{Instance, Label, Lighting, render};
 
@@ -87,6 +88,80 @@ pub struct KinematicGripper {
     /// T_c: camera to world.
     pub camera_to_world: Isometry3<f64>,
     pub settings: GripperSettings,
+    /// The camera's lens, for a capture whose images are distorted
+    /// ([`LensMap::new`]); `None` for a pinhole.
+    pub lens: Option<LensMap>,
+}
+
+/// Where each pixel of a distorted image looks in a pinhole render: the
+/// render covers every such place (a barrel lens sees past the pinhole
+/// frame), and each image pixel takes the render's pixel its ray hits.
+pub struct LensMap {
+    /// The pinhole camera rendered: the image's focal lengths, a canvas
+    /// grown to cover the lens's field.
+    render: Intrinsics,
+    /// Per image pixel, row-major: the render pixel (index) its ray hits.
+    source: Vec<Option<usize>>,
+}
+
+impl LensMap {
+    /// The map of a camera with `intrinsics` (pixel centres at +0.5) and lens `distortion`.
+    pub fn new(distortion: &Distortion, intrinsics: &Intrinsics) -> LensMap {
+        let k = intrinsics;
+        let rays: Vec<Option<[f64; 2]>> = (0..k.height)
+            .flat_map(|j| (0..k.width).map(move |i| (i, j)))
+            .map(|(i, j)| {
+                let xd = (f64::from(i) + 0.5 - k.cx) / k.fx;
+                let yd = (f64::from(j) + 0.5 - k.cy) / k.fy;
+                distortion
+                    .undistort(xd, yd)
+                    .map(|[x, y]| [k.fx * x + k.cx, k.fy * y + k.cy])
+            })
+            .collect();
+        // The canvas: the rays' extent, at most three image sizes each way.
+        let (w, h) = (f64::from(k.width), f64::from(k.height));
+        let seen = rays.iter().flatten();
+        let lo_u = seen
+            .clone()
+            .map(|p| p[0])
+            .fold(0.0, f64::min)
+            .max(-w)
+            .floor();
+        let lo_v = seen
+            .clone()
+            .map(|p| p[1])
+            .fold(0.0, f64::min)
+            .max(-h)
+            .floor();
+        let hi_u = seen
+            .clone()
+            .map(|p| p[0])
+            .fold(w, f64::max)
+            .min(2.0 * w)
+            .ceil();
+        let hi_v = seen.map(|p| p[1]).fold(h, f64::max).min(2.0 * h).ceil();
+        let render = Intrinsics {
+            width: (hi_u - lo_u) as u32,
+            height: (hi_v - lo_v) as u32,
+            fx: k.fx,
+            fy: k.fy,
+            cx: k.cx - lo_u,
+            cy: k.cy - lo_v,
+        };
+        let source = rays
+            .iter()
+            .map(|ray| {
+                let [u, v] = (*ray)?;
+                let (u, v) = ((u - lo_u).floor(), (v - lo_v).floor());
+                (u >= 0.0
+                    && v >= 0.0
+                    && u < f64::from(render.width)
+                    && v < f64::from(render.height))
+                .then(|| v as usize * render.width as usize + u as usize)
+            })
+            .collect();
+        LensMap { render, source }
+    }
 }
 
 impl KinematicGripper {
@@ -115,18 +190,26 @@ impl KinematicGripper {
         let view = render(
             &instances,
             &lighting,
-            &self.intrinsics,
+            self.lens.as_ref().map_or(&self.intrinsics, |l| &l.render),
             &self.camera_to_world,
             self.settings.supersample,
         );
-        let (w, h) = (view.width as usize, view.height as usize);
-        let mask: Vec<bool> = view.labels.iter().map(|&l| l == Label::Gripper).collect();
-        let depth = view
-            .depth
-            .iter()
-            .zip(&mask)
-            .map(|(&d, &m)| if m { d } else { 0.0 })
-            .collect();
+        let gripper_depth = |i: usize| (view.labels[i] == Label::Gripper).then_some(view.depth[i]);
+        // Depth along the optical axis is the same through the lens.
+        let per_pixel: Vec<Option<f32>> = match &self.lens {
+            None => (0..view.labels.len()).map(gripper_depth).collect(),
+            Some(lens) => lens
+                .source
+                .iter()
+                .map(|s| s.and_then(gripper_depth))
+                .collect(),
+        };
+        let (w, h) = (
+            self.intrinsics.width as usize,
+            self.intrinsics.height as usize,
+        );
+        let mask: Vec<bool> = per_pixel.iter().map(Option::is_some).collect();
+        let depth = per_pixel.iter().map(|d| d.unwrap_or(0.0)).collect();
         GripperProjection {
             mask: Plane {
                 width: w,

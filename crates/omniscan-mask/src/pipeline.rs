@@ -20,7 +20,7 @@ use omniscan_scene::gripper::GripperModel;
 
 use crate::depth::{DepthEstimator, DepthOutput, MonocularDepth, SensorDepth};
 use crate::flow::{FlowEstimator, FlowInputRange, FlowSettings, LucasKanade, OnnxFlow};
-use crate::gripper::{GripperProjection, GripperSettings, KinematicGripper, refine};
+use crate::gripper::{GripperProjection, GripperSettings, KinematicGripper, LensMap, refine};
 use crate::object::{ObjectInputs, ObjectSettings, object_mask};
 use crate::plane::{Plane, iou};
 use crate::sam::{SamProposer, SamSettings};
@@ -135,6 +135,9 @@ impl Masker {
                 intrinsics: *capture.intrinsics(),
                 camera_to_world: capture.camera_to_world(),
                 settings: settings.gripper,
+                lens: capture
+                    .distortion()
+                    .map(|d| LensMap::new(d, capture.intrinsics())),
             },
             depth: Box::new(SensorDepth),
             flow: Box::new(LucasKanade {

@@ -271,3 +271,64 @@ fn the_learned_gripper_path_trains_saves_and_masks() {
         "kinematic {kinematic_iou}"
     );
 }
+
+/// Through a lens, the gripper lands where the lens model (its forward map,
+/// independent of the Newton inverse the projection uses) puts the pinhole
+/// projection's pixels.
+#[test]
+fn the_kinematic_projection_follows_the_lens() {
+    use omniscan_core::lens::Distortion;
+    use omniscan_mask::gripper::{GripperSettings, KinematicGripper, LensMap};
+    use omniscan_scene::gripper::GripperModel;
+    let tmp = tempfile::tempdir().unwrap();
+    let capture = simulate(&tmp.path().join("capture"), "builtin:remote", 3);
+    let k = *capture.intrinsics();
+    let lens = Distortion::RadialTangential {
+        k1: -0.25,
+        k2: 0.05,
+        k3: 0.0,
+        p1: 0.002,
+        p2: -0.001,
+    };
+    let gripper = |lens: Option<LensMap>| KinematicGripper {
+        model: GripperModel::builtin(),
+        intrinsics: k,
+        camera_to_world: capture.camera_to_world(),
+        settings: GripperSettings {
+            supersample: 1,
+            ..GripperSettings::default()
+        },
+        lens,
+    };
+    let frame = &capture.file.frames[0];
+    let opening = frame.gripper_opening_m.unwrap();
+    let pinhole = gripper(None).project(&frame.gripper_to_world.0, opening);
+    let through =
+        gripper(Some(LensMap::new(&lens, &k))).project(&frame.gripper_to_world.0, opening);
+    assert!(pinhole.mask.data != through.mask.data);
+    let (mut checked, mut agree) = (0, 0);
+    let at = |m: &omniscan_mask::plane::Plane<bool>, x: usize, y: usize| m.data[y * m.width + x];
+    for y in 1..k.height as usize - 1 {
+        for x in 1..k.width as usize - 1 {
+            // Pixels inside the pinhole mask, away from its edge.
+            let inside = (0..9).all(|n| at(&pinhole.mask, x + n % 3 - 1, y + n / 3 - 1));
+            if !inside {
+                continue;
+            }
+            let xn = (x as f64 + 0.5 - k.cx) / k.fx;
+            let yn = (y as f64 + 0.5 - k.cy) / k.fy;
+            let [xd, yd] = lens.distort(xn, yn);
+            let (u, v) = (k.fx * xd + k.cx, k.fy * yd + k.cy);
+            if u < 0.0 || v < 0.0 || u >= k.width as f64 || v >= k.height as f64 {
+                continue;
+            }
+            checked += 1;
+            agree += usize::from(at(&through.mask, u as usize, v as usize));
+        }
+    }
+    assert!(checked > 200, "{checked} pixels checked");
+    assert!(
+        agree as f64 >= 0.98 * checked as f64,
+        "{agree} of {checked}"
+    );
+}

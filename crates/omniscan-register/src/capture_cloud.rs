@@ -62,7 +62,20 @@ pub fn object_cloud(
                     let Some(z) = depth.metres(x, y) else {
                         continue;
                     };
-                    let p = k.unproject(x as f64 + 0.5, y as f64 + 0.5, z);
+                    let (u, v) = (x as f64 + 0.5, y as f64 + 0.5);
+                    let p = match capture.distortion() {
+                        None => k.unproject(u, v, z),
+                        // The pixel's ray, through the lens (the depth is
+                        // registered to the colour image, lens and all).
+                        Some(lens) => {
+                            let Some([xn, yn]) =
+                                lens.undistort((u - k.cx) / k.fx, (v - k.cy) / k.fy)
+                            else {
+                                continue;
+                            };
+                            nalgebra::Point3::new(xn * z, yn * z, z)
+                        }
+                    };
                     cloud.points.push(to_object * p);
                     let i = ((y * k.width + x) * 3) as usize;
                     cloud.colors.push(

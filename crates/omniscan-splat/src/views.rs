@@ -984,14 +984,27 @@ fn load_capture_view(
             )));
         }
     }
-    Ok(PackedView::shrink(
-        capture_camera(capture, v, f),
+    let camera = capture_camera(capture, v, f);
+    let Some(distortion) = capture.distortion() else {
+        return Ok(PackedView::shrink(
+            camera,
+            &rgb,
+            &object,
+            Some(&gripper),
+            depth_map.as_ref(),
+            f,
+        ));
+    };
+    let k = capture.intrinsics();
+    let pinhole = Pinhole::of(
+        distortion,
+        [k.fx, k.fy, k.cx, k.cy],
         &rgb,
         &object,
         Some(&gripper),
         depth_map.as_ref(),
-        f,
-    ))
+    )?;
+    Ok(pinhole.shrink(camera, f))
 }
 
 /// The far plane of captures and of photo sets in metres or similar units.
@@ -1176,28 +1189,61 @@ fn load_photo(
             f,
         ));
     };
-    let undistortion = Undistortion::new(
+    let pinhole = Pinhole::of(
         distortion,
         [frame.fl_x, frame.fl_y, frame.cx, frame.cy],
-        rgb.width,
-        rgb.height,
-    );
-    // Left out: what the lens did not see, and the gripper where it did.
-    let mut excluded = undistortion.unseen_mask();
-    if let Some(g) = gripper {
-        for (e, g) in excluded.data.iter_mut().zip(undistortion.mask(&g)?.data) {
-            *e = (*e).max(g);
-        }
-    }
-    let depth = depth.map(|d| undistortion.depth(&d)).transpose()?;
-    Ok(PackedView::shrink(
-        camera,
-        &undistortion.rgb(&rgb)?,
-        &undistortion.mask(&mask)?,
-        Some(&excluded),
+        &rgb,
+        &mask,
+        gripper.as_ref(),
         depth.as_ref(),
-        f,
-    ))
+    )?;
+    Ok(pinhole.shrink(camera, f))
+}
+
+/// A view's images resampled onto the pinhole camera of the same
+/// intrinsics ([`Undistortion`]), with what the lens did not see left out
+/// of the losses together with the gripper.
+struct Pinhole {
+    rgb: omniscan_core::image_io::RgbImage,
+    mask: omniscan_core::image_io::Mask,
+    excluded: omniscan_core::image_io::Mask,
+    depth: Option<omniscan_core::image_io::DepthMm>,
+}
+
+impl Pinhole {
+    fn of(
+        distortion: &Distortion,
+        intrinsics: [f64; 4],
+        rgb: &omniscan_core::image_io::RgbImage,
+        mask: &omniscan_core::image_io::Mask,
+        gripper: Option<&omniscan_core::image_io::Mask>,
+        depth: Option<&omniscan_core::image_io::DepthMm>,
+    ) -> Result<Pinhole, SplatError> {
+        let undistortion = Undistortion::new(distortion, intrinsics, rgb.width, rgb.height);
+        let mut excluded = undistortion.unseen_mask();
+        if let Some(g) = gripper {
+            for (e, g) in excluded.data.iter_mut().zip(undistortion.mask(g)?.data) {
+                *e = (*e).max(g);
+            }
+        }
+        Ok(Pinhole {
+            rgb: undistortion.rgb(rgb)?,
+            mask: undistortion.mask(mask)?,
+            excluded,
+            depth: depth.map(|d| undistortion.depth(d)).transpose()?,
+        })
+    }
+
+    fn shrink(&self, camera: Camera<f32>, f: u32) -> PackedView {
+        PackedView::shrink(
+            camera,
+            &self.rgb,
+            &self.mask,
+            Some(&self.excluded),
+            self.depth.as_ref(),
+            f,
+        )
+    }
 }
 
 #[cfg(test)]
