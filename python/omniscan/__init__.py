@@ -49,6 +49,7 @@ __all__ = [
     "view",
     "mesh",
     "asset",
+    "import_ros2",
     "read_splats",
     "write_splats",
     "read_cloud",
@@ -228,3 +229,11 @@ def asset(model: PathLike, *, out: PathLike, progress: Any = None, **settings: A
     ``out``: the mesh, convex collision pieces, mass and inertia, as URDF
     and MuJoCo MJCF."""
     return _run("asset", [model, out], settings, progress)
+
+
+def import_ros2(bag: PathLike, *, out: PathLike, progress: Any = None, **settings: Any) -> Report:
+    """Makes the capture folder ``out`` (which must not exist) from the ROS 2
+    bag ``bag`` (MCAP or sqlite3, a file or its folder): images, depth and
+    camera_info, gripper poses from TF, phases from /omniscan/phase
+    (docs/ros2.md)."""
+    return _run("import_ros2", [bag, out], settings, progress)

@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 pub use omniscan_ros::{ImportReport, Ros2ImportSettings};
 
 use crate::Progress;
@@ -18,9 +18,9 @@ pub fn import_ros2(
     progress: &dyn Progress,
 ) -> Result<ImportReport> {
     progress.start("reading the bag", 0, "images");
+    // The library's errors name the bag, topic, frame and time already.
     let report =
-        omniscan_ros::import_ros2(bag, out, settings, &|images| progress.set(images as u64))
-            .with_context(|| format!("importing {}", bag.display()));
+        omniscan_ros::import_ros2(bag, out, settings, &|images| progress.set(images as u64));
     progress.finish();
-    report
+    Ok(report?)
 }

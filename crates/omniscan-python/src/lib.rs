@@ -64,7 +64,7 @@ impl Progress for PyProgress {
 }
 
 /// The stages the bindings run, by the Python function's name.
-const STAGES: [&str; 13] = [
+const STAGES: [&str; 14] = [
     "simulate",
     "mask",
     "train",
@@ -78,6 +78,7 @@ const STAGES: [&str; 13] = [
     "view",
     "mesh",
     "asset",
+    "import_ros2",
 ];
 
 /// A keyword argument the stage's settings cannot take.
@@ -128,6 +129,7 @@ fn default_json(stage: &str) -> Result<serde_json::Value> {
         "view" => json::<share::ViewSettings>(),
         "mesh" => json::<geometry::MeshSettings>(),
         "asset" => json::<geometry::AssetSettings>(),
+        "import_ros2" => json::<omniscan_pipeline::import::Ros2ImportSettings>(),
         other => bail!("no stage `{other}`: the stages are {}", STAGES.join(", ")),
     }
 }
@@ -176,6 +178,12 @@ fn run(
         "view" => to_json(share::view(&paths[1..], p(0), &settings(given)?)?),
         "mesh" => to_json(geometry::mesh(p(0), p(1), &settings(given)?, progress)?),
         "asset" => to_json(geometry::asset(p(0), p(1), &settings(given)?, progress)?),
+        "import_ros2" => to_json(omniscan_pipeline::import::import_ros2(
+            p(0),
+            p(1),
+            &settings(given)?,
+            progress,
+        )?),
         other => bail!("no stage `{other}`: the stages are {}", STAGES.join(", ")),
     }
 }

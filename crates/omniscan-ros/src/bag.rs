@@ -7,6 +7,8 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use omniscan_core::CoreError;
+
 use crate::RosError;
 
 /// One serialized message.
@@ -45,10 +47,10 @@ fn storage_of(path: &Path) -> Option<Storage> {
 impl Bag {
     /// The bag at `path`: a `.mcap` or `.db3` file, or a directory with them.
     pub fn open(path: &Path) -> Result<Bag, RosError> {
-        let meta = std::fs::metadata(path).map_err(|e| RosError::bag(path, e.to_string()))?;
+        let meta = std::fs::metadata(path).map_err(|e| CoreError::io(path, e))?;
         let files = if meta.is_dir() {
             let mut files: Vec<(PathBuf, Storage)> = std::fs::read_dir(path)
-                .map_err(|e| RosError::bag(path, e.to_string()))?
+                .map_err(|e| CoreError::io(path, e))?
                 .filter_map(|entry| entry.ok().map(|e| e.path()))
                 .filter_map(|p| storage_of(&p).map(|s| (p, s)))
                 .collect();
@@ -100,7 +102,7 @@ fn read_mcap(
     visit: &mut dyn FnMut(BagMessage) -> Result<(), RosError>,
     topics: &mut BTreeMap<String, String>,
 ) -> Result<(), RosError> {
-    let file = std::fs::File::open(path).map_err(|e| RosError::bag(path, e.to_string()))?;
+    let file = std::fs::File::open(path).map_err(|e| CoreError::io(path, e))?;
     for message in mcap::io::MessageReader::new(std::io::BufReader::new(file)) {
         let message =
             message.map_err(|e| RosError::bag(path, format!("not a readable MCAP file: {e}")))?;

@@ -281,7 +281,7 @@ fn read_recording(
     rec.images.sort_by_key(|i| i.stamp_ns);
     rec.depths.sort_by_key(|i| i.stamp_ns);
     for series in rec.joints.values_mut() {
-        series.sort_by(|a, b| a.0.cmp(&b.0));
+        series.sort_by_key(|a| a.0);
     }
     let missing = [
         (s.image_topic.as_str(), rec.images.is_empty()),

@@ -26,7 +26,7 @@ impl Cdr {
         Cdr(vec![0, 1, 0, 0])
     }
     fn align(&mut self, n: usize) {
-        while (self.0.len() - 4) % n != 0 {
+        while !(self.0.len() - 4).is_multiple_of(n) {
             self.0.push(0);
         }
     }
@@ -79,6 +79,8 @@ impl Cdr {
 
 /// (topic, type, log time ns, bytes)
 type Message = (String, String, i64, Vec<u8>);
+/// Adds a message: topic, type, log time ns, bytes.
+type Push<'a> = dyn FnMut(&str, &str, i64, Vec<u8>) + 'a;
 
 fn image_msg(
     t: i64,
@@ -254,7 +256,7 @@ fn recording(capture: &Capture, distortion: &[f64]) -> Vec<Message> {
                 .collect(),
         ),
     ];
-    let tf_at = |t: i64, poses: (Pose, Pose), push: &mut dyn FnMut(&str, &str, i64, Vec<u8>)| {
+    let tf_at = |t: i64, poses: (Pose, Pose), push: &mut Push| {
         let base = base_to_world().inverse();
         push(
             "/tf",

@@ -1993,3 +1993,53 @@ fn mesh_and_asset_write_a_closed_mesh_and_refuse_bad_models() {
     ]);
     assert_refused(&o, "--name");
 }
+
+#[test]
+fn import_ros2_refuses_what_is_no_bag_and_names_the_bag_s_topics() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("capture");
+    let o = |bag: &Path| {
+        omniscan(&[
+            "import",
+            "ros2",
+            bag.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
+    };
+    let missing = o(&dir.path().join("nothing.mcap"));
+    assert_refused(&missing, "nothing.mcap: no such file or directory");
+    assert_eq!(
+        missing.status.code(),
+        Some(74),
+        "a file that is not there is EX_IOERR"
+    );
+    let text = dir.path().join("notes.txt");
+    std::fs::write(&text, "hello").unwrap();
+    assert_refused(&o(&text), "is neither an .mcap nor a .db3 file");
+    // An MCAP file with one unrelated topic: the import names what it has.
+    let bag = dir.path().join("other.mcap");
+    let mut w = mcap::Writer::new(std::io::BufWriter::new(
+        std::fs::File::create(&bag).unwrap(),
+    ))
+    .unwrap();
+    let schema = w.add_schema("std_msgs/msg/String", "ros2msg", b"").unwrap();
+    let channel = w
+        .add_channel(schema, "/chatter", "cdr", &Default::default())
+        .unwrap();
+    let header = mcap::records::MessageHeader {
+        channel_id: channel,
+        sequence: 0,
+        log_time: 1,
+        publish_time: 1,
+    };
+    w.write_to_known_channel(&header, &[0, 1, 0, 0, 3, 0, 0, 0, b'h', b'i', 0])
+        .unwrap();
+    w.finish().unwrap();
+    drop(w);
+    assert_refused(
+        &o(&bag),
+        "no messages on /camera/color/image_raw; the bag has: /chatter (std_msgs/msg/String)",
+    );
+    assert!(!out.exists());
+}
