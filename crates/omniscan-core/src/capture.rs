@@ -91,6 +91,10 @@ pub struct FrameGroundTruth {
     pub gripper_mask_path: Option<String>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub depth_path: Option<String>,
+    /// The true gripper pose, where the recorded `gripper_to_world` carries
+    /// a simulated calibration error (`sim --pose-noise-deg/--pose-noise-mm`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gripper_to_world: Option<RigidTransform>,
 }
 
 /// Where a frame sits on the scan trajectory.

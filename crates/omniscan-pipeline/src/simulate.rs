@@ -87,6 +87,12 @@ pub struct SimulateSettings {
     /// Skip the empty-gripper calibration pass.
     #[arg(long)]
     pub no_empty_pass: bool,
+    /// Calibration error of the recorded gripper poses: a seeded random rotation per frame of this RMS angle, degrees (images keep the true pose, recorded in each frame's gt).
+    #[arg(long, default_value_t = 0.0)]
+    pub pose_noise_deg: f64,
+    /// The same for translation: RMS offset per frame, millimetres.
+    #[arg(long, default_value_t = 0.0)]
+    pub pose_noise_mm: f64,
     #[command(flatten)]
     #[serde(flatten)]
     pub plan: PlanSettings,
@@ -112,6 +118,8 @@ impl SimulateSettings {
             gripper_dir: self.gripper_dir.clone(),
             camera_distance_m: self.camera_distance_m,
             empty_pass: !self.no_empty_pass,
+            pose_noise_deg: self.pose_noise_deg,
+            pose_noise_mm: self.pose_noise_mm,
         }
     }
 }

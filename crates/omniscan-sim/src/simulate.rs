@@ -59,6 +59,15 @@ pub struct SimConfig {
     pub camera_distance_m: Option<f64>,
     /// Render the empty-gripper pass.
     pub empty_pass: bool,
+    /// Calibration error of the recorded gripper poses: each frame's
+    /// `gripper_to_world` is recorded turned by a seeded random rotation of
+    /// this RMS angle, degrees (the images keep the true pose, which goes
+    /// into the frame's `gt`).
+    #[serde(default)]
+    pub pose_noise_deg: f64,
+    /// The same for translation: RMS offset, millimetres.
+    #[serde(default)]
+    pub pose_noise_mm: f64,
 }
 
 impl Default for SimConfig {
@@ -78,6 +87,8 @@ impl Default for SimConfig {
             gripper_dir: None,
             camera_distance_m: None,
             empty_pass: true,
+            pose_noise_deg: 0.0,
+            pose_noise_mm: 0.0,
         }
     }
 }
@@ -85,6 +96,10 @@ impl Default for SimConfig {
 /// The largest slip at handover the simulator takes: rotation, degrees,
 /// and translation, millimetres (a finger pad is about 20 mm wide).
 pub const MAX_SLIP_DEG: f64 = 45.0;
+/// The largest simulated calibration error of the recorded gripper poses
+/// (RMS per frame): rotation, degrees, and translation, millimetres.
+pub const MAX_POSE_NOISE_DEG: f64 = 10.0;
+pub const MAX_POSE_NOISE_MM: f64 = 50.0;
 pub const MAX_SLIP_MM: f64 = 20.0;
 
 /// The object as the simulator holds it.
@@ -178,6 +193,26 @@ pub fn load_object(spec: &str, scale: Option<f64>) -> Result<SimObject, SimError
     })
 }
 
+/// A random pose error in the gripper's frame: rotation vector and
+/// translation with independent normal components, of RMS angle `deg`
+/// degrees and RMS offset `mm` millimetres.
+fn calibration_error(rng: &mut ChaCha8Rng, deg: f64, mm: f64) -> Pose {
+    let mut normal3 = |rms: f64| {
+        let sigma = rms / 3f64.sqrt();
+        nalgebra::Vector3::from_fn(|_, _| {
+            let u1: f64 = rng.random::<f64>().max(1e-300);
+            let u2: f64 = rng.random();
+            sigma * (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+        })
+    };
+    let rotation = normal3(deg.to_radians());
+    let translation = normal3(mm * 1e-3);
+    Pose::from_parts(
+        Translation3::from(translation),
+        UnitQuaternion::from_scaled_axis(rotation),
+    )
+}
+
 /// One image to render.
 #[derive(Debug, Clone)]
 pub struct FramePlan {
@@ -186,6 +221,9 @@ pub struct FramePlan {
     pub index: usize,
     pub trajectory: TrajectoryIndex,
     pub gripper_to_world: Pose,
+    /// The pose the capture records: `gripper_to_world` with the
+    /// configured calibration error (the same without one).
+    pub recorded_gripper_to_world: Pose,
     /// Object pose in the holding gripper (None for empty frames).
     pub object_to_gripper: Option<Pose>,
     pub opening_m: f64,
@@ -286,6 +324,8 @@ impl Simulation {
             ("slip_deg", config.slip_deg),
             ("slip_mm", config.slip_mm),
             ("depth noise", config.depth_noise_m_at_1m),
+            ("pose_noise_deg", config.pose_noise_deg),
+            ("pose_noise_mm", config.pose_noise_mm),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(SimError::Invalid(format!(
@@ -295,6 +335,14 @@ impl Simulation {
         }
         // A slip is the part moving in the fingers, not leaving them: past
         // these the right arm's scan no longer sees the part at all.
+        // Calibration error, not a different robot: past these the recorded
+        // poses stop describing the scan.
+        if config.pose_noise_deg > MAX_POSE_NOISE_DEG || config.pose_noise_mm > MAX_POSE_NOISE_MM {
+            return Err(SimError::Invalid(format!(
+                "a pose error of {}° / {} mm is no calibration error: at most {MAX_POSE_NOISE_DEG}° and {MAX_POSE_NOISE_MM} mm",
+                config.pose_noise_deg, config.pose_noise_mm
+            )));
+        }
         if config.slip_deg > MAX_SLIP_DEG || config.slip_mm > MAX_SLIP_MM {
             return Err(SimError::Invalid(format!(
                 "a slip of {}° / {} mm would move the part out of the gripper: at most {MAX_SLIP_DEG}° and {MAX_SLIP_MM} mm",
@@ -393,10 +441,18 @@ impl Simulation {
                         index,
                         trajectory: p.trajectory,
                         gripper_to_world: p.gripper_to_world.0,
+                        recorded_gripper_to_world: p.gripper_to_world.0,
                         object_to_gripper,
                         opening_m,
                     });
                 }
+            }
+        }
+        if config.pose_noise_deg > 0.0 || config.pose_noise_mm > 0.0 {
+            let mut noise = ChaCha8Rng::seed_from_u64(config.seed ^ 0x9053);
+            for f in &mut frames {
+                f.recorded_gripper_to_world = f.gripper_to_world
+                    * calibration_error(&mut noise, config.pose_noise_deg, config.pose_noise_mm);
             }
         }
         let slip_record = serde_json::json!({
@@ -579,10 +635,11 @@ impl Simulation {
     /// The capture description for this simulation.
     pub fn capture_file(&self) -> CaptureFile {
         let noisy = self.noisy();
+        let noisy_poses = self.config.pose_noise_deg > 0.0 || self.config.pose_noise_mm > 0.0;
         let to_frame = |f: &FramePlan| Frame {
             file_path: f.image_path(),
             arm: f.arm,
-            gripper_to_world: RigidTransform(f.gripper_to_world),
+            gripper_to_world: RigidTransform(f.recorded_gripper_to_world),
             depth_path: Some(f.depth_path(noisy)),
             object_mask_path: None,
             gripper_mask_path: None,
@@ -592,6 +649,7 @@ impl Simulation {
                 object_mask_path: (!f.empty).then(|| f.gt_object_mask_path()),
                 gripper_mask_path: Some(f.gt_gripper_mask_path()),
                 depth_path: Some(f.gt_depth_path()),
+                gripper_to_world: noisy_poses.then_some(RigidTransform(f.gripper_to_world)),
             }),
         };
         let (lo, hi) = self.object.mesh.bounds();

@@ -254,3 +254,61 @@ fn every_builtin_can_be_grasped_and_handed_over() {
         assert_eq!(sim.frames.len(), 12);
     }
 }
+
+/// `--pose-noise-deg/--pose-noise-mm`: the recorded poses carry an error of
+/// the asked RMS size, seeded; the images and the truth in `gt` are those of
+/// the noise-free scan.
+#[test]
+fn pose_noise_perturbs_the_recorded_poses_only() {
+    let plan = ScanPlanConfig {
+        wrist_angles: 20,
+        latitudes: 5,
+        ..ScanPlanConfig::default()
+    };
+    let clean = Simulation::new(SimConfig {
+        plan,
+        ..small_config("builtin:remote")
+    })
+    .unwrap();
+    let noisy_config = SimConfig {
+        plan,
+        pose_noise_deg: 0.5,
+        pose_noise_mm: 1.0,
+        ..small_config("builtin:remote")
+    };
+    let noisy = Simulation::new(noisy_config.clone()).unwrap();
+    let again = Simulation::new(noisy_config).unwrap().capture_file();
+    let (a, b) = (clean.capture_file(), noisy.capture_file());
+    assert_eq!(b, again, "the same seed gives the same errors");
+    let (mut sum_deg2, mut sum_mm2) = (0.0, 0.0);
+    for (fa, fb) in a.frames.iter().zip(&b.frames) {
+        assert!(fa.gt.as_ref().unwrap().gripper_to_world.is_none());
+        let truth = fb.gt.as_ref().unwrap().gripper_to_world.unwrap();
+        assert_eq!(truth, fa.gripper_to_world);
+        let (rad, m) = pose_difference(&truth.0, &fb.gripper_to_world.0);
+        sum_deg2 += rad.to_degrees().powi(2);
+        sum_mm2 += (m * 1000.0).powi(2);
+    }
+    let n = a.frames.len() as f64;
+    let (rms_deg, rms_mm) = ((sum_deg2 / n).sqrt(), (sum_mm2 / n).sqrt());
+    assert!(
+        (rms_deg - 0.5).abs() < 0.06,
+        "RMS {rms_deg}° over {n} frames"
+    );
+    assert!(
+        (rms_mm - 1.0).abs() < 0.12,
+        "RMS {rms_mm} mm over {n} frames"
+    );
+    // What the camera saw is the noise-free scan's.
+    let frame = &noisy.frames[7];
+    assert_eq!(
+        noisy.render_frame(frame, Layers::ALL, 1).rgb,
+        clean.render_frame(&clean.frames[7], Layers::ALL, 1).rgb
+    );
+    let too_much = SimConfig {
+        pose_noise_deg: 20.0,
+        ..small_config("builtin:remote")
+    };
+    let e = Simulation::new(too_much).err().unwrap().to_string();
+    assert!(e.contains("no calibration error"), "{e}");
+}
