@@ -179,6 +179,24 @@ pub struct CaptureGroundTruth {
     pub extra: serde_json::Map<String, serde_json::Value>,
 }
 
+/// The robot whose gripper a capture shows, from its description file
+/// (`sim --robot-urdf`, `import ros2 --robot-urdf`), so that every stage
+/// uses the same gripper geometry. Absent: the ABB YuMi.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RobotSpec {
+    /// The URDF file (absolute, or relative to the capture folder).
+    pub urdf: String,
+    /// The link whose subtree is the gripper.
+    pub gripper_root: String,
+    /// The tool (TCP) frame: a link fixed to the gripper root...
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tcp_link: Option<String>,
+    /// ...or an offset from the gripper root's origin in its axes, metres.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tcp_offset_m: Option<[f64; 3]>,
+}
+
 /// A capture as stored in `capture.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CaptureFile {
@@ -189,6 +207,9 @@ pub struct CaptureFile {
     pub empty_frames: Vec<Frame>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub gt: Option<CaptureGroundTruth>,
+    /// The robot's gripper, when it is not the YuMi.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub robot: Option<RobotSpec>,
     /// Free-form description of what produced the capture.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub generator: Option<serde_json::Value>,

@@ -120,13 +120,27 @@ impl Masker {
             .and_then(|c| c.get("gripper_dir"))
             .and_then(|d| d.as_str())
             .map(PathBuf::from);
-        let model = match gripper_dir.map(Path::to_path_buf).or(recorded) {
-            Some(dir) => GripperModel::from_yumi_dir(&dir).map_err(|e| {
+        let model = match (&capture.file.robot, gripper_dir) {
+            (Some(robot), None) => GripperModel::from_robot(robot, &capture.dir).map_err(|e| {
                 MaskError::Invalid(format!(
-                    "{e}\n(the gripper model for kinematic masks; pass --gripper-dir with the robot's gripper meshes)"
+                    "{e}\n(the robot's gripper the capture records, for kinematic masks)"
                 ))
             })?,
-            None => GripperModel::builtin(),
+            (Some(_), Some(dir)) => {
+                return Err(MaskError::Invalid(format!(
+                    "the capture records its robot's gripper ({}); --gripper-dir {} (the YuMi's meshes) does not apply",
+                    capture.file.robot.as_ref().unwrap().urdf,
+                    dir.display()
+                )));
+            }
+            (None, dir) => match dir.map(Path::to_path_buf).or(recorded) {
+                Some(dir) => GripperModel::from_yumi_dir(&dir).map_err(|e| {
+                    MaskError::Invalid(format!(
+                        "{e}\n(the gripper model for kinematic masks; pass --gripper-dir with the robot's gripper meshes)"
+                    ))
+                })?,
+                None => GripperModel::builtin(),
+            },
         };
         Ok(Masker {
             method: GripperMethod::Kinematic,

@@ -17,6 +17,11 @@ pub fn import_ros2(
     settings: &Ros2ImportSettings,
     progress: &dyn Progress,
 ) -> Result<ImportReport> {
+    // The robot's gripper is loaded first: a capture that names a URDF
+    // the masks cannot use is not made.
+    if let Some(robot) = settings.robot() {
+        omniscan_sim::gripper::GripperModel::from_robot(&robot, Path::new("."))?;
+    }
     progress.start("reading the bag", 0, "images");
     // The library's errors name the bag, topic, frame and time already.
     let report =

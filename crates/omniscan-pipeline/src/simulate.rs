@@ -2,6 +2,7 @@
 //! a real textured mesh held by a real gripper model, turned through the
 //! scan plan by each arm in turn, rendered with depth and ground truth.
 
+use omniscan_core::capture::RobotSpec;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
@@ -93,6 +94,24 @@ pub struct SimulateSettings {
     /// The same for translation: RMS offset per frame, millimetres.
     #[arg(long, default_value_t = 0.0)]
     pub pose_noise_mm: f64,
+    /// Another robot's gripper: its URDF (meshes STL, OBJ or PLY; package:// paths resolve the ROS way). The capture records it, so `mask` uses the same gripper. Default: the ABB YuMi.
+    #[arg(long, requires = "gripper_root", conflicts_with = "gripper_dir")]
+    pub robot_urdf: Option<PathBuf>,
+    /// The URDF link whose subtree is the gripper.
+    #[arg(long, requires = "robot_urdf")]
+    pub gripper_root: Option<String>,
+    /// The tool (TCP) frame: a link fixed to the gripper root, z the approach, x the closing direction, its origin between the pads.
+    #[arg(long, requires = "robot_urdf", conflicts_with = "tcp_offset_m")]
+    pub tcp_link: Option<String>,
+    /// The TCP as an offset from the gripper root's origin in its axes, metres: X,Y,Z.
+    #[arg(
+        long,
+        requires = "robot_urdf",
+        value_delimiter = ',',
+        num_args = 3,
+        allow_negative_numbers = true
+    )]
+    pub tcp_offset_m: Option<Vec<f64>>,
     #[command(flatten)]
     #[serde(flatten)]
     pub plan: PlanSettings,
@@ -120,6 +139,15 @@ impl SimulateSettings {
             empty_pass: !self.no_empty_pass,
             pose_noise_deg: self.pose_noise_deg,
             pose_noise_mm: self.pose_noise_mm,
+            robot: self.robot_urdf.as_ref().map(|urdf| RobotSpec {
+                urdf: urdf.display().to_string(),
+                gripper_root: self.gripper_root.clone().unwrap_or_default(),
+                tcp_link: self.tcp_link.clone(),
+                tcp_offset_m: self
+                    .tcp_offset_m
+                    .as_ref()
+                    .map(|v| [0, 1, 2].map(|i| v.get(i).copied().unwrap_or(f64::NAN))),
+            }),
         }
     }
 }

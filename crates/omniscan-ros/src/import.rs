@@ -77,6 +77,43 @@ pub struct Ros2ImportSettings {
     /// millimetres (and a tenth of this in degrees).
     #[arg(long, default_value_t = Ros2ImportSettings::default().camera_drift_mm)]
     pub camera_drift_mm: f64,
+    /// The robot's URDF, recorded in the capture so that `mask` draws its gripper (default: the ABB YuMi).
+    #[arg(long, requires = "gripper_root")]
+    pub robot_urdf: Option<PathBuf>,
+    /// The URDF link whose subtree is the gripper.
+    #[arg(long, requires = "robot_urdf")]
+    pub gripper_root: Option<String>,
+    /// The tool (TCP) frame as a URDF link fixed to the gripper root.
+    #[arg(long, requires = "robot_urdf", conflicts_with = "tcp_offset_m")]
+    pub tcp_link: Option<String>,
+    /// The TCP as an offset from the gripper root's origin in its axes, metres: X,Y,Z.
+    #[arg(
+        long,
+        requires = "robot_urdf",
+        value_delimiter = ',',
+        num_args = 3,
+        allow_negative_numbers = true
+    )]
+    pub tcp_offset_m: Option<Vec<f64>>,
+}
+
+impl Ros2ImportSettings {
+    /// The robot the flags name, its URDF path made absolute.
+    pub fn robot(&self) -> Option<omniscan_core::capture::RobotSpec> {
+        let urdf = self.robot_urdf.as_ref()?;
+        Some(omniscan_core::capture::RobotSpec {
+            urdf: std::path::absolute(urdf)
+                .unwrap_or_else(|_| urdf.clone())
+                .display()
+                .to_string(),
+            gripper_root: self.gripper_root.clone().unwrap_or_default(),
+            tcp_link: self.tcp_link.clone(),
+            tcp_offset_m: self
+                .tcp_offset_m
+                .as_ref()
+                .map(|v| [0, 1, 2].map(|i| v.get(i).copied().unwrap_or(f64::NAN))),
+        })
+    }
 }
 
 impl Default for Ros2ImportSettings {
@@ -96,6 +133,10 @@ impl Default for Ros2ImportSettings {
             right_finger_joint: "gripper_r_joint".into(),
             opening_m_per_joint_unit: 2.0,
             camera_drift_mm: 1.0,
+            robot_urdf: None,
+            gripper_root: None,
+            tcp_link: None,
+            tcp_offset_m: None,
         }
     }
 }
@@ -735,6 +776,7 @@ fn assemble(
         frames,
         empty_frames,
         gt: None,
+        robot: s.robot(),
         generator: Some(serde_json::json!({
             "name": "omniscan import ros2",
             "version": env!("CARGO_PKG_VERSION"),

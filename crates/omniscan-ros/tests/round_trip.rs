@@ -480,8 +480,20 @@ fn camera_info_distortion_is_recorded_in_the_capture() {
     let path = tmp.path().join("scan.mcap");
     write_mcap(&path, &recording(&original, &d));
     let out = tmp.path().join("capture");
-    import_ros2(&path, &out, &Ros2ImportSettings::default(), &|_| {}).unwrap();
+    let settings = Ros2ImportSettings {
+        robot_urdf: Some("robots/hand.urdf".into()),
+        gripper_root: Some("palm".into()),
+        tcp_offset_m: Some(vec![0.0, 0.0, 0.07]),
+        ..Ros2ImportSettings::default()
+    };
+    import_ros2(&path, &out, &settings, &|_| {}).unwrap();
     let imported = Capture::load(&out).unwrap();
+    let robot = imported.file.robot.as_ref().unwrap();
+    assert!(Path::new(&robot.urdf).is_absolute() && robot.urdf.ends_with("robots/hand.urdf"));
+    assert_eq!(
+        (robot.gripper_root.as_str(), robot.tcp_offset_m),
+        ("palm", Some([0.0, 0.0, 0.07]))
+    );
     assert_eq!(
         imported.distortion(),
         Some(&Distortion::RadialTangential {

@@ -16,8 +16,11 @@ use std::path::Path;
 
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 
+use omniscan_core::capture::RobotSpec;
+
 use crate::SceneError;
 use crate::mesh::{Material, Mesh, MeshBuilder};
+use crate::robot::RobotGripper;
 
 /// Distance from the gripper base to the finger mounts (URDF), metres.
 pub const FINGER_MOUNT_M: f64 = 0.0837;
@@ -32,7 +35,9 @@ pub const MAX_OPENING_M: f64 = 0.050;
 /// Distance of the finger's contact face from its mount origin along x (finray_finger.stl).
 const PAD_OFFSET_M: f64 = 0.0007;
 
-/// The gripper's meshes in their own (URDF) frames.
+/// The gripper's meshes in their own (URDF) frames: the YuMi's parts, or
+/// another robot's gripper from its URDF ([`crate::robot`]), whose meshes
+/// then stand in for all four.
 #[derive(Debug, Clone)]
 pub struct GripperModel {
     pub base: Mesh,
@@ -40,6 +45,7 @@ pub struct GripperModel {
     pub wrist: Mesh,
     pub forearm: Mesh,
     pub source: String,
+    pub robot: Option<Box<RobotGripper>>,
 }
 
 /// A gripper part placed relative to the TCP frame.
@@ -70,7 +76,28 @@ impl GripperModel {
             wrist: load("link_7.stl", [0.62, 0.62, 0.62], 0.25)?,
             forearm: forearm_mesh(),
             source: dir.display().to_string(),
+            robot: None,
         })
+    }
+
+    /// The gripper of the robot `spec` describes (its URDF relative to `base`).
+    pub fn from_robot(spec: &RobotSpec, base: &Path) -> Result<GripperModel, SceneError> {
+        let robot = RobotGripper::load(spec, base)?;
+        Ok(GripperModel {
+            base: Mesh::default(),
+            finger: Mesh::default(),
+            wrist: Mesh::default(),
+            forearm: Mesh::default(),
+            source: format!("{} ({})", spec.urdf, spec.gripper_root),
+            robot: Some(Box::new(robot)),
+        })
+    }
+
+    /// The widest opening between the pads, metres.
+    pub fn max_opening_m(&self) -> f64 {
+        self.robot
+            .as_ref()
+            .map_or(MAX_OPENING_M, |r| r.max_opening_m())
     }
 
     /// A built-in approximation of the YuMi gripper with the URDF's dimensions.
@@ -148,11 +175,23 @@ impl GripperModel {
             wrist,
             forearm: forearm_mesh(),
             source: "builtin".into(),
+            robot: None,
         }
     }
 
     /// Where each part sits, relative to the TCP, for a given pad opening (metres).
     pub fn parts(&self, opening: f64) -> Vec<PlacedPart<'_>> {
+        if let Some(robot) = &self.robot {
+            return robot
+                .placed(opening)
+                .into_iter()
+                .map(|(mesh, tcp_to_part)| PlacedPart {
+                    mesh,
+                    tcp_to_part,
+                    is_arm: false,
+                })
+                .collect();
+        }
         let q = (0.5 * opening).clamp(0.0, 0.5 * MAX_OPENING_M + 0.01);
         let tcp_to_base = Isometry3::translation(0.0, 0.0, -TCP_FROM_BASE_M);
         let half_turn = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), std::f64::consts::PI);

@@ -11,6 +11,7 @@ pub mod gripper;
 pub mod loaders;
 pub mod mesh;
 pub mod raster;
+pub mod robot;
 
 use std::path::{Path, PathBuf};
 

@@ -28,7 +28,7 @@ use crate::SimError;
 use crate::builtin::{BUILTIN_OBJECTS, builtin_object};
 use crate::defect::{DefectRecord, DefectSpec, plant_defect};
 use crate::grasp::{Grasp, GraspSettings, plan_grasp_pair};
-use crate::gripper::{GripperModel, MAX_OPENING_M, TCP_FROM_BASE_M};
+use crate::gripper::{GripperModel, TCP_FROM_BASE_M};
 use crate::mesh::Mesh;
 use crate::raster::{Decal, Instance, Label, Lighting, RenderedView, render};
 
@@ -68,6 +68,10 @@ pub struct SimConfig {
     /// The same for translation: RMS offset, millimetres.
     #[serde(default)]
     pub pose_noise_mm: f64,
+    /// Another robot's gripper, from its URDF (the path absolute or
+    /// relative to the working folder); the YuMi when absent.
+    #[serde(default)]
+    pub robot: Option<omniscan_core::capture::RobotSpec>,
 }
 
 impl Default for SimConfig {
@@ -89,6 +93,7 @@ impl Default for SimConfig {
             empty_pass: true,
             pose_noise_deg: 0.0,
             pose_noise_mm: 0.0,
+            robot: None,
         }
     }
 }
@@ -363,15 +368,21 @@ impl Simulation {
             .transpose()
             .map_err(SimError::Invalid)?;
         let mut object = load_object(&config.object, config.object_scale)?;
-        let gripper = match &config.gripper_dir {
-            Some(dir) => GripperModel::from_yumi_dir(dir)?,
-            None => GripperModel::builtin(),
+        let gripper = match (&config.robot, &config.gripper_dir) {
+            (Some(_), Some(_)) => {
+                return Err(SimError::Invalid(
+                    "give the gripper as a robot description or as the YuMi's meshes (--gripper-dir), not both".into(),
+                ));
+            }
+            (Some(robot), None) => GripperModel::from_robot(robot, Path::new("."))?,
+            (None, Some(dir)) => GripperModel::from_yumi_dir(dir)?,
+            (None, None) => GripperModel::builtin(),
         };
         let settings = GraspSettings {
             candidates: 600,
             friction_cone_rad: 20f64.to_radians(),
             min_width_m: 0.002,
-            max_width_m: MAX_OPENING_M - 0.004,
+            max_width_m: gripper.max_opening_m() - 0.004,
             seed: config.seed ^ 0x6a5b,
         };
         let (left_grasp, right_grasp) = plan_grasp_pair(&object.mesh, &settings)?;
@@ -677,7 +688,7 @@ impl Simulation {
         extra.insert("defect".into(), serde_json::to_value(&self.defect).unwrap());
         extra.insert(
             "gripper".into(),
-            serde_json::json!({ "model": self.gripper.source, "tcp_from_base_m": TCP_FROM_BASE_M, "max_opening_m": MAX_OPENING_M }),
+            serde_json::json!({ "model": self.gripper.source, "tcp_from_base_m": self.gripper.robot.is_none().then_some(TCP_FROM_BASE_M), "max_opening_m": self.gripper.max_opening_m() }),
         );
         extra.insert(
             "masks".into(),
@@ -710,6 +721,16 @@ impl Simulation {
                 .filter(|f| f.empty)
                 .map(to_frame)
                 .collect(),
+            robot: self
+                .config
+                .robot
+                .as_ref()
+                .map(|r| omniscan_core::capture::RobotSpec {
+                    // Recorded absolute, so the capture's later stages find it.
+                    urdf: std::path::absolute(&r.urdf)
+                        .map_or_else(|_| r.urdf.clone(), |p| p.display().to_string()),
+                    ..r.clone()
+                }),
             gt: Some(CaptureGroundTruth {
                 object_to_left_gripper: RigidTransform(self.object_to_left),
                 object_to_right_gripper: RigidTransform(self.object_to_right),
