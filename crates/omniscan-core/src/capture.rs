@@ -185,8 +185,9 @@ pub struct CaptureGroundTruth {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RobotSpec {
-    /// The URDF file (absolute, or relative to the capture folder).
-    pub urdf: String,
+    /// The robot's description: a URDF, or a MuJoCo MJCF file (absolute,
+    /// or relative to the capture folder); told apart by their root element.
+    pub description: String,
     /// The link whose subtree is the gripper.
     pub gripper_root: String,
     /// The tool (TCP) frame: a link fixed to the gripper root...

@@ -129,7 +129,7 @@ impl Masker {
             (Some(_), Some(dir)) => {
                 return Err(MaskError::Invalid(format!(
                     "the capture records its robot's gripper ({}); --gripper-dir {} (the YuMi's meshes) does not apply",
-                    capture.file.robot.as_ref().unwrap().urdf,
+                    capture.file.robot.as_ref().unwrap().description,
                     dir.display()
                 )));
             }

@@ -95,13 +95,26 @@ pub struct SimulateSettings {
     #[arg(long, default_value_t = 0.0)]
     pub pose_noise_mm: f64,
     /// Another robot's gripper: its URDF (meshes STL, OBJ or PLY; package:// paths resolve the ROS way). The capture records it, so `mask` uses the same gripper. Default: the ABB YuMi.
-    #[arg(long, requires = "gripper_root", conflicts_with = "gripper_dir")]
+    #[arg(
+        long,
+        group = "robot",
+        requires = "gripper_root",
+        conflicts_with = "gripper_dir"
+    )]
     pub robot_urdf: Option<PathBuf>,
+    /// Another robot's gripper from a MuJoCo MJCF file (bodies, hinge and slide joints, equality couplings and connect loops, actuators; docs/simulate.md).
+    #[arg(
+        long,
+        group = "robot",
+        requires = "gripper_root",
+        conflicts_with = "gripper_dir"
+    )]
+    pub robot_mjcf: Option<PathBuf>,
     /// The URDF link whose subtree is the gripper.
-    #[arg(long, requires = "robot_urdf")]
+    #[arg(long, requires = "robot")]
     pub gripper_root: Option<String>,
     /// The tool (TCP) frame: a link fixed to the gripper root, z the approach, x the closing direction, its origin between the pads.
-    #[arg(long, requires = "robot_urdf", conflicts_with = "tcp_offset_m")]
+    #[arg(long, requires = "gripper_root", conflicts_with = "tcp_offset_m")]
     pub tcp_link: Option<String>,
     /// The TCP as an offset from the gripper root's origin in its axes, metres: X,Y,Z.
     #[arg(
@@ -139,15 +152,19 @@ impl SimulateSettings {
             empty_pass: !self.no_empty_pass,
             pose_noise_deg: self.pose_noise_deg,
             pose_noise_mm: self.pose_noise_mm,
-            robot: self.robot_urdf.as_ref().map(|urdf| RobotSpec {
-                urdf: urdf.display().to_string(),
-                gripper_root: self.gripper_root.clone().unwrap_or_default(),
-                tcp_link: self.tcp_link.clone(),
-                tcp_offset_m: self
-                    .tcp_offset_m
-                    .as_ref()
-                    .map(|v| [0, 1, 2].map(|i| v.get(i).copied().unwrap_or(f64::NAN))),
-            }),
+            robot: self
+                .robot_urdf
+                .as_ref()
+                .or(self.robot_mjcf.as_ref())
+                .map(|urdf| RobotSpec {
+                    description: urdf.display().to_string(),
+                    gripper_root: self.gripper_root.clone().unwrap_or_default(),
+                    tcp_link: self.tcp_link.clone(),
+                    tcp_offset_m: self
+                        .tcp_offset_m
+                        .as_ref()
+                        .map(|v| [0, 1, 2].map(|i| v.get(i).copied().unwrap_or(f64::NAN))),
+                }),
         }
     }
 }

@@ -78,13 +78,16 @@ pub struct Ros2ImportSettings {
     #[arg(long, default_value_t = Ros2ImportSettings::default().camera_drift_mm)]
     pub camera_drift_mm: f64,
     /// The robot's URDF, recorded in the capture so that `mask` draws its gripper (default: the ABB YuMi).
-    #[arg(long, requires = "gripper_root")]
+    #[arg(long, group = "robot", requires = "gripper_root")]
     pub robot_urdf: Option<PathBuf>,
+    /// The robot's MuJoCo MJCF file instead of a URDF.
+    #[arg(long, group = "robot", requires = "gripper_root")]
+    pub robot_mjcf: Option<PathBuf>,
     /// The URDF link whose subtree is the gripper.
-    #[arg(long, requires = "robot_urdf")]
+    #[arg(long, requires = "robot")]
     pub gripper_root: Option<String>,
     /// The tool (TCP) frame as a URDF link fixed to the gripper root.
-    #[arg(long, requires = "robot_urdf", conflicts_with = "tcp_offset_m")]
+    #[arg(long, requires = "gripper_root", conflicts_with = "tcp_offset_m")]
     pub tcp_link: Option<String>,
     /// The TCP as an offset from the gripper root's origin in its axes, metres: X,Y,Z.
     #[arg(
@@ -100,9 +103,9 @@ pub struct Ros2ImportSettings {
 impl Ros2ImportSettings {
     /// The robot the flags name, its URDF path made absolute.
     pub fn robot(&self) -> Option<omniscan_core::capture::RobotSpec> {
-        let urdf = self.robot_urdf.as_ref()?;
+        let urdf = self.robot_urdf.as_ref().or(self.robot_mjcf.as_ref())?;
         Some(omniscan_core::capture::RobotSpec {
-            urdf: std::path::absolute(urdf)
+            description: std::path::absolute(urdf)
                 .unwrap_or_else(|_| urdf.clone())
                 .display()
                 .to_string(),
@@ -134,6 +137,7 @@ impl Default for Ros2ImportSettings {
             opening_m_per_joint_unit: 2.0,
             camera_drift_mm: 1.0,
             robot_urdf: None,
+            robot_mjcf: None,
             gripper_root: None,
             tcp_link: None,
             tcp_offset_m: None,

@@ -489,7 +489,10 @@ fn camera_info_distortion_is_recorded_in_the_capture() {
     import_ros2(&path, &out, &settings, &|_| {}).unwrap();
     let imported = Capture::load(&out).unwrap();
     let robot = imported.file.robot.as_ref().unwrap();
-    assert!(Path::new(&robot.urdf).is_absolute() && robot.urdf.ends_with("robots/hand.urdf"));
+    assert!(
+        Path::new(&robot.description).is_absolute()
+            && robot.description.ends_with("robots/hand.urdf")
+    );
     assert_eq!(
         (robot.gripper_root.as_str(), robot.tcp_offset_m),
         ("palm", Some([0.0, 0.0, 0.07]))

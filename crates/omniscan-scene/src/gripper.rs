@@ -88,7 +88,7 @@ impl GripperModel {
             finger: Mesh::default(),
             wrist: Mesh::default(),
             forearm: Mesh::default(),
-            source: format!("{} ({})", spec.urdf, spec.gripper_root),
+            source: format!("{} ({})", spec.description, spec.gripper_root),
             robot: Some(Box::new(robot)),
         })
     }

@@ -10,6 +10,7 @@ pub mod canvas;
 pub mod gripper;
 pub mod loaders;
 pub mod mesh;
+mod mjcf;
 pub mod raster;
 pub mod robot;
 

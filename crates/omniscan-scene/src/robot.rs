@@ -27,32 +27,57 @@ use crate::mesh::{Material, Mesh, MeshBuilder};
 
 /// How a finger joint moves.
 #[derive(Debug, Clone, Copy, PartialEq)]
-enum Motion {
+pub(crate) enum Motion {
     Fixed,
     Revolute,
     Prismatic,
 }
 
+/// A joint: the child's pose is parent · origin · motion(q) · post.
 #[derive(Debug, Clone)]
-struct Joint {
-    name: String,
-    parent: String,
-    child: String,
-    origin: Isometry3<f64>,
-    axis: Vector3<f64>,
-    motion: Motion,
+pub(crate) struct Joint {
+    pub name: String,
+    pub parent: String,
+    pub child: String,
+    pub origin: Isometry3<f64>,
+    /// After the motion: MJCF's joints turn about a point of the child body
+    /// (`origin` ends there, `post` comes back); identity in a URDF.
+    pub post: Isometry3<f64>,
+    pub axis: Vector3<f64>,
+    pub motion: Motion,
     /// Travel (radians or metres).
-    lower: f64,
-    upper: f64,
+    pub lower: f64,
+    pub upper: f64,
     /// (joint, multiplier, offset): this joint = multiplier x that + offset.
-    mimic: Option<(String, f64, f64)>,
+    pub mimic: Option<(String, f64, f64)>,
+    /// Driven by the opening (else set by a loop closure, or held at 0).
+    pub actuated: bool,
 }
 
 /// One link's visual geometry in its own frame.
 #[derive(Debug, Clone)]
-struct LinkMesh {
-    link: String,
-    mesh: Mesh,
+pub(crate) struct LinkMesh {
+    pub link: String,
+    pub mesh: Mesh,
+}
+
+/// A closed kinematic loop (MJCF's `connect`): a point of one link stays on
+/// a point of another.
+#[derive(Debug, Clone)]
+pub(crate) struct Closure {
+    pub link_a: String,
+    pub anchor_a: Point3<f64>,
+    pub link_b: String,
+    pub anchor_b: Point3<f64>,
+}
+
+/// A gripper's description, as a URDF or MJCF file gives it.
+#[derive(Debug, Clone, Default)]
+pub(crate) struct Tree {
+    /// Joints of the subtree under the root, parents before children.
+    pub joints: Vec<Joint>,
+    pub meshes: Vec<LinkMesh>,
+    pub closures: Vec<Closure>,
 }
 
 /// A gripper from a URDF, ready to be placed at an opening.
@@ -64,6 +89,7 @@ pub struct RobotGripper {
     /// Joints of the subtree, parents before children.
     joints: Vec<Joint>,
     meshes: Vec<LinkMesh>,
+    closures: Vec<Closure>,
     /// (joint share, opening metres), the share rising from closed to open.
     openings: Vec<(f64, f64)>,
     /// Whether share 0 is the joints' lower limit (else the upper).
@@ -174,83 +200,21 @@ impl RobotGripper {
     /// The gripper `spec` describes; `base` is the folder a relative URDF
     /// path is relative to (the capture's).
     pub fn load(spec: &RobotSpec, base: &Path) -> Result<RobotGripper, SceneError> {
-        let path = base.join(&spec.urdf);
+        let path = base.join(&spec.description);
         let fail = |message: String| SceneError::mesh(&path, message);
-        let robot =
-            urdf_rs::read_file(&path).map_err(|e| fail(format!("not a readable URDF: {e}")))?;
-        let links: BTreeMap<&str, &urdf_rs::Link> =
-            robot.links.iter().map(|l| (l.name.as_str(), l)).collect();
-        if !links.contains_key(spec.gripper_root.as_str()) {
-            return Err(fail(format!(
-                "no link `{}` (--gripper-root); its links are {}",
-                spec.gripper_root,
-                links.keys().copied().collect::<Vec<_>>().join(", ")
-            )));
-        }
-        let colours: BTreeMap<&str, [f32; 3]> = robot
-            .materials
-            .iter()
-            .filter_map(|m| m.color.as_ref().map(|c| (m.name.as_str(), rgb(&c.rgba.0))))
-            .collect();
-        // The subtree, parents before children.
-        let mut in_tree = vec![spec.gripper_root.clone()];
-        let mut joints = Vec::new();
-        let mut i = 0;
-        while i < in_tree.len() {
-            let parent = in_tree[i].clone();
-            for j in robot.joints.iter().filter(|j| j.parent.link == parent) {
-                if in_tree.contains(&j.child.link) {
-                    return Err(fail(format!(
-                        "link {} is reached twice under {} (joint {}): a URDF is a tree",
-                        j.child.link, spec.gripper_root, j.name
-                    )));
-                }
-                joints.push(joint(j).map_err(&fail)?);
-                in_tree.push(j.child.link.clone());
-            }
-            i += 1;
-        }
-        for j in &joints {
-            if let Some((target, _, _)) = &j.mimic
-                && !joints.iter().any(|k| &k.name == target)
-            {
-                return Err(fail(format!(
-                    "joint {} mimics {target}, which is not under {}",
-                    j.name, spec.gripper_root
-                )));
-            }
-        }
-        let mut meshes = Vec::new();
-        for name in &in_tree {
-            let Some(link) = links.get(name.as_str()) else {
-                return Err(fail(format!(
-                    "a joint names link {name}, which the URDF lacks"
-                )));
-            };
-            for visual in &link.visual {
-                let colour = visual
-                    .material
-                    .as_ref()
-                    .and_then(|m| {
-                        m.color
-                            .as_ref()
-                            .map(|c| rgb(&c.rgba.0))
-                            .or_else(|| colours.get(m.name.as_str()).copied())
-                    })
-                    .unwrap_or([0.6, 0.6, 0.6]);
-                let mesh = visual_mesh(visual, &path, colour)
-                    .map_err(|e| fail(format!("link {name}: {e}")))?;
-                meshes.push(LinkMesh {
-                    link: name.clone(),
-                    mesh,
-                });
-            }
-        }
+        let text = std::fs::read_to_string(&path)
+            .map_err(|e| SceneError::Core(omniscan_core::CoreError::io(&path, e)))?;
+        let tree = if text.contains("<mujoco") {
+            crate::mjcf::tree(&text, &path, &spec.gripper_root).map_err(&fail)?
+        } else {
+            urdf_tree(&text, &path, &spec.gripper_root).map_err(&fail)?
+        };
         let mut gripper = RobotGripper {
             root: spec.gripper_root.clone(),
             tcp_in_root: Isometry3::identity(),
-            joints,
-            meshes,
+            joints: tree.joints,
+            meshes: tree.meshes,
+            closures: tree.closures,
             openings: Vec::new(),
             open_at_upper: true,
         };
@@ -308,27 +272,92 @@ impl RobotGripper {
             1.0 - share
         };
         let mut q: BTreeMap<&str, f64> = BTreeMap::new();
-        for j in self
-            .joints
-            .iter()
-            .filter(|j| j.motion != Motion::Fixed && j.mimic.is_none())
-        {
+        for j in self.joints.iter().filter(|j| j.actuated) {
             q.insert(&j.name, j.lower + s * (j.upper - j.lower));
         }
+        self.follow_mimics(&mut q);
+        if !self.closures.is_empty() {
+            self.close_loops(&mut q);
+        }
+        q
+    }
+
+    fn follow_mimics<'s>(&'s self, q: &mut BTreeMap<&'s str, f64>) {
         for j in &self.joints {
             if let Some((target, multiplier, offset)) = &j.mimic {
                 let v = q.get(target.as_str()).copied().unwrap_or(0.0);
                 q.insert(&j.name, multiplier * v + offset);
             }
         }
-        q
     }
 
-    /// Every link's pose in the TCP frame at `share` of the travel.
-    fn link_poses(&self, share: f64) -> BTreeMap<&str, Isometry3<f64>> {
-        let q = self.positions(share);
+    /// The loop closures' residual: each closure's two points apart, metres.
+    fn closure_residual(&self, q: &BTreeMap<&str, f64>) -> Vec<f64> {
+        let poses = self.forward(q);
+        self.closures
+            .iter()
+            .flat_map(|c| {
+                let a = poses[c.link_a.as_str()] * c.anchor_a;
+                let b = poses[c.link_b.as_str()] * c.anchor_b;
+                (a - b).iter().copied().collect::<Vec<_>>()
+            })
+            .collect()
+    }
+
+    /// Sets the joints neither driven nor mimicking so that every loop
+    /// closes: damped Gauss-Newton from the rest pose, the smallest motion
+    /// of those joints among the solutions (an underactuated finger's
+    /// spring keeps it near its rest pose too).
+    fn close_loops<'s>(&'s self, q: &mut BTreeMap<&'s str, f64>) {
+        let free: Vec<&str> = self
+            .joints
+            .iter()
+            .filter(|j| j.motion != Motion::Fixed && !j.actuated && j.mimic.is_none())
+            .map(|j| j.name.as_str())
+            .collect();
+        let n = free.len();
+        if n == 0 {
+            return;
+        }
+        const H: f64 = 1e-7;
+        // Small: it picks among the exact closures, it must not trade one off.
+        const DAMPING: f64 = 1e-10;
+        let set = |q: &mut BTreeMap<&'s str, f64>, x: &nalgebra::DVector<f64>| {
+            for (k, name) in free.iter().enumerate() {
+                q.insert(name, x[k]);
+            }
+            self.follow_mimics(q);
+        };
+        let mut x = nalgebra::DVector::<f64>::zeros(n);
+        for _ in 0..50 {
+            set(q, &x);
+            let r = nalgebra::DVector::from_vec(self.closure_residual(q));
+            if r.norm() < 1e-9 {
+                break;
+            }
+            let mut jac = nalgebra::DMatrix::<f64>::zeros(r.len(), n);
+            for k in 0..n {
+                let mut xh = x.clone();
+                xh[k] += H;
+                set(q, &xh);
+                let rh = nalgebra::DVector::from_vec(self.closure_residual(q));
+                jac.set_column(k, &((rh - &r) / H));
+            }
+            // Minimise |r + J dx|² + DAMPING |x + dx|².
+            let lhs = jac.transpose() * &jac + nalgebra::DMatrix::<f64>::identity(n, n) * DAMPING;
+            let rhs = -(jac.transpose() * &r) - &x * DAMPING;
+            let Some(dx) = lhs.lu().solve(&rhs) else {
+                break;
+            };
+            x += dx;
+        }
+        set(q, &x);
+    }
+
+    /// Every link's pose in the root frame at joint positions `q`.
+    fn forward(&self, q: &BTreeMap<&str, f64>) -> BTreeMap<&str, Isometry3<f64>> {
         let mut poses: BTreeMap<&str, Isometry3<f64>> = BTreeMap::new();
-        poses.insert(&self.root, self.tcp_in_root.inverse());
+        poses.insert(&self.root, Isometry3::identity());
         for j in &self.joints {
             let parent = poses[j.parent.as_str()];
             let v = q.get(j.name.as_str()).copied().unwrap_or(0.0);
@@ -342,9 +371,18 @@ impl RobotGripper {
                     Isometry3::translation(j.axis.x * v, j.axis.y * v, j.axis.z * v)
                 }
             };
-            poses.insert(&j.child, parent * j.origin * motion);
+            poses.insert(&j.child, parent * j.origin * motion * j.post);
         }
         poses
+    }
+
+    /// Every link's pose in the TCP frame at `share` of the travel.
+    fn link_poses(&self, share: f64) -> BTreeMap<&str, Isometry3<f64>> {
+        let to_tcp = self.tcp_in_root.inverse();
+        self.forward(&self.positions(share))
+            .into_iter()
+            .map(|(link, pose)| (link, to_tcp * pose))
+            .collect()
     }
 
     /// The gap along the TCP's x axis at `share`: rays from the TCP to the
@@ -378,11 +416,7 @@ impl RobotGripper {
 
     /// The opening at shares 0..1 of the travel, closed to open.
     fn measure_openings(&mut self) -> Result<(), String> {
-        if !self
-            .joints
-            .iter()
-            .any(|j| j.motion != Motion::Fixed && j.mimic.is_none())
-        {
+        if !self.joints.iter().any(|j| j.actuated) {
             return Err(format!("no finger joint moves under {}", self.root));
         }
         const SAMPLES: usize = 33;
@@ -482,5 +516,127 @@ fn joint(j: &urdf_rs::Joint) -> Result<Joint, String> {
                 m.offset.unwrap_or(0.0),
             )
         }),
+        post: Isometry3::identity(),
+        actuated: motion != Motion::Fixed && j.mimic.is_none(),
     })
+}
+
+fn urdf_tree(text: &str, path: &Path, root: &str) -> Result<Tree, String> {
+    let fail = |m: String| m;
+    let robot = urdf_rs::read_from_string(text).map_err(|e| format!("not a readable URDF: {e}"))?;
+    let links: BTreeMap<&str, &urdf_rs::Link> =
+        robot.links.iter().map(|l| (l.name.as_str(), l)).collect();
+    if !links.contains_key(root) {
+        return Err(fail(format!(
+            "no link `{}` (--gripper-root); its links are {}",
+            root,
+            links.keys().copied().collect::<Vec<_>>().join(", ")
+        )));
+    }
+    let colours: BTreeMap<&str, [f32; 3]> = robot
+        .materials
+        .iter()
+        .filter_map(|m| m.color.as_ref().map(|c| (m.name.as_str(), rgb(&c.rgba.0))))
+        .collect();
+    // The subtree, parents before children.
+    let mut in_tree = vec![root.to_string()];
+    let mut joints = Vec::new();
+    let mut i = 0;
+    while i < in_tree.len() {
+        let parent = in_tree[i].clone();
+        for j in robot.joints.iter().filter(|j| j.parent.link == parent) {
+            if in_tree.contains(&j.child.link) {
+                return Err(fail(format!(
+                    "link {} is reached twice under {} (joint {}): a URDF is a tree",
+                    j.child.link, root, j.name
+                )));
+            }
+            joints.push(joint(j).map_err(&fail)?);
+            in_tree.push(j.child.link.clone());
+        }
+        i += 1;
+    }
+    for j in &joints {
+        if let Some((target, _, _)) = &j.mimic
+            && !joints.iter().any(|k| &k.name == target)
+        {
+            return Err(fail(format!(
+                "joint {} mimics {target}, which is not under {}",
+                j.name, root
+            )));
+        }
+    }
+    let mut meshes = Vec::new();
+    for name in &in_tree {
+        let Some(link) = links.get(name.as_str()) else {
+            return Err(fail(format!(
+                "a joint names link {name}, which the URDF lacks"
+            )));
+        };
+        for visual in &link.visual {
+            let colour = visual
+                .material
+                .as_ref()
+                .and_then(|m| {
+                    m.color
+                        .as_ref()
+                        .map(|c| rgb(&c.rgba.0))
+                        .or_else(|| colours.get(m.name.as_str()).copied())
+                })
+                .unwrap_or([0.6, 0.6, 0.6]);
+            let mesh =
+                visual_mesh(visual, path, colour).map_err(|e| fail(format!("link {name}: {e}")))?;
+            meshes.push(LinkMesh {
+                link: name.clone(),
+                mesh,
+            });
+        }
+    }
+    Ok(Tree {
+        joints,
+        meshes,
+        closures: Vec::new(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The 2F-85's four-bar linkage from `../shared` closes at every
+    /// opening: the follower's pin stays on the coupler's.
+    #[test]
+    #[ignore = "needs ../shared"]
+    fn the_2f85_linkage_closes_along_the_travel() {
+        let shared = std::env::var("OMNISCAN_SHARED").map_or_else(
+            |_| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared"),
+            PathBuf::from,
+        );
+        let spec = RobotSpec {
+            description: shared
+                .join("data/grippers/robotiq_2f85/2f85.xml")
+                .display()
+                .to_string(),
+            gripper_root: "base_mount".into(),
+            tcp_link: None,
+            tcp_offset_m: Some([0.0, 0.0, 0.13]),
+        };
+        let gripper = RobotGripper::load(&spec, Path::new("/")).unwrap();
+        assert_eq!(gripper.closures.len(), 1);
+        let mut previous = f64::INFINITY;
+        for i in 0..=10 {
+            let share = f64::from(i) / 10.0;
+            let q = gripper.positions(share);
+            let r = gripper.closure_residual(&q);
+            let gap = r.iter().map(|v| v * v).sum::<f64>().sqrt();
+            assert!(gap < 1e-7, "share {share}: the loop is {gap} m open");
+            // Share 0 is closed: the opening only grows.
+            let opening = gripper.gap_at(share).unwrap();
+            assert!(
+                i == 0 || opening > previous - 1e-9,
+                "{opening} after {previous}"
+            );
+            previous = opening;
+        }
+    }
 }

@@ -727,8 +727,8 @@ impl Simulation {
                 .as_ref()
                 .map(|r| omniscan_core::capture::RobotSpec {
                     // Recorded absolute, so the capture's later stages find it.
-                    urdf: std::path::absolute(&r.urdf)
-                        .map_or_else(|_| r.urdf.clone(), |p| p.display().to_string()),
+                    description: std::path::absolute(&r.description)
+                        .map_or_else(|_| r.description.clone(), |p| p.display().to_string()),
                     ..r.clone()
                 }),
             gt: Some(CaptureGroundTruth {

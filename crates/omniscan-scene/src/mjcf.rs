@@ -1,0 +1,545 @@
+//! A gripper from a MuJoCo MJCF file (MuJoCo Menagerie publishes many
+//! grippers only so): the body subtree under the gripper root, read with
+//! `roxmltree`. No maintained Rust crate reads MJCF, and a gripper needs a
+//! small part of it, written here:
+//!
+//! - `<compiler angle meshdir>`; `<default>` classes, nested, picked by an
+//!   element's `class`, else the nearest `childclass` above it;
+//! - bodies (`pos`, `quat` or `axisangle`), each with at most one `hinge` or
+//!   `slide` joint (`axis`, `pos`, `range`) or none (fixed), and `site`s
+//!   (usable as the TCP);
+//! - the geoms MuJoCo's viewer shows by default (groups 0-2): `mesh` (STL,
+//!   OBJ, PLY assets with `scale`), `box`, `cylinder`; colour from `rgba` or
+//!   the material;
+//! - `<equality>`: `joint` (linear `polycoef`) as a mimic, `connect` as a
+//!   loop closure (the 2F-85's four-bar linkage);
+//! - the joints `<actuator>`s drive, directly or through a fixed tendon.
+//!
+//! Bodies are the links; a body's joint turns about its `pos` in the body.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use nalgebra::{Isometry3, Point3, Translation3, Unit, UnitQuaternion, Vector3};
+use roxmltree::{Document, Node};
+
+use crate::mesh::{Material, MeshBuilder};
+use crate::robot::{Closure, Joint, LinkMesh, Motion, Tree};
+
+/// Element tag -> attribute -> value, as one `<default>` class sets them.
+type ClassAttributes<'a> = BTreeMap<String, BTreeMap<String, &'a str>>;
+
+/// The `<default>` classes: class -> (parent class, its attributes).
+struct Defaults<'a> {
+    classes: BTreeMap<String, (Option<String>, ClassAttributes<'a>)>,
+}
+
+impl<'a> Defaults<'a> {
+    fn read(root: Node<'a, 'a>) -> Defaults<'a> {
+        let mut d = Defaults {
+            classes: BTreeMap::new(),
+        };
+        for node in root.children().filter(|n| n.has_tag_name("default")) {
+            d.add(node, None);
+        }
+        d
+    }
+
+    fn add(&mut self, node: Node<'a, 'a>, parent: Option<String>) {
+        let class = node.attribute("class").unwrap_or("main").to_string();
+        let mut elements: ClassAttributes<'a> = BTreeMap::new();
+        for child in node.children().filter(|n| n.is_element()) {
+            if child.has_tag_name("default") {
+                self.add(child, Some(class.clone()));
+            } else {
+                let attrs = elements
+                    .entry(child.tag_name().name().to_string())
+                    .or_default();
+                for a in child.attributes() {
+                    attrs.insert(a.name().to_string(), a.value());
+                }
+            }
+        }
+        self.classes.insert(class, (parent, elements));
+    }
+
+    /// `attr` of a `tag` element in `class`, else in its parents.
+    fn get(&self, class: &str, tag: &str, attr: &str) -> Option<&'a str> {
+        let mut current = Some(class.to_string());
+        while let Some(c) = current {
+            let (parent, elements) = self.classes.get(&c)?;
+            if let Some(v) = elements.get(tag).and_then(|e| e.get(attr)) {
+                return Some(v);
+            }
+            current = parent
+                .clone()
+                .or_else(|| (c != "main").then(|| "main".into()));
+        }
+        None
+    }
+}
+
+/// Reading context: the file, its defaults and compiler settings.
+struct Reader<'a> {
+    path: &'a Path,
+    defaults: Defaults<'a>,
+    radians: bool,
+    meshdir: String,
+    meshes: BTreeMap<String, (String, String)>,
+    materials: BTreeMap<String, [f32; 3]>,
+}
+
+fn numbers(text: &str, what: &str) -> Result<Vec<f64>, String> {
+    text.split_whitespace()
+        .map(|v| {
+            v.parse::<f64>()
+                .ok()
+                .filter(|x| x.is_finite())
+                .ok_or_else(|| format!("{what}: `{text}` is not a list of numbers"))
+        })
+        .collect()
+}
+
+fn vec3(text: Option<&str>, what: &str, default: [f64; 3]) -> Result<Vector3<f64>, String> {
+    match text {
+        None => Ok(Vector3::from(default)),
+        Some(t) => match numbers(t, what)?.as_slice() {
+            [x, y, z] => Ok(Vector3::new(*x, *y, *z)),
+            _ => Err(format!("{what}: `{t}` needs three numbers")),
+        },
+    }
+}
+
+impl<'a> Reader<'a> {
+    /// An attribute of `node`, else of its class's defaults.
+    fn attr(&self, node: Node<'a, 'a>, class: &str, name: &str) -> Option<&'a str> {
+        node.attribute(name).or_else(|| {
+            let class = node.attribute("class").unwrap_or(class);
+            self.defaults.get(class, node.tag_name().name(), name)
+        })
+    }
+
+    fn angle(&self, v: f64) -> f64 {
+        if self.radians { v } else { v.to_radians() }
+    }
+
+    /// The frame `pos` + `quat` (w x y z) or `axisangle` of an element.
+    fn frame(&self, node: Node<'a, 'a>, class: &str, what: &str) -> Result<Isometry3<f64>, String> {
+        let pos = vec3(self.attr(node, class, "pos"), what, [0.0; 3])?;
+        let rotation = if let Some(q) = node.attribute("quat") {
+            match numbers(q, what)?.as_slice() {
+                [w, x, y, z] => {
+                    UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(*w, *x, *y, *z))
+                }
+                _ => return Err(format!("{what}: quat `{q}` needs four numbers")),
+            }
+        } else if let Some(a) = node.attribute("axisangle") {
+            match numbers(a, what)?.as_slice() {
+                [x, y, z, angle] => UnitQuaternion::from_axis_angle(
+                    &Unit::new_normalize(Vector3::new(*x, *y, *z)),
+                    self.angle(*angle),
+                ),
+                _ => return Err(format!("{what}: axisangle `{a}` needs four numbers")),
+            }
+        } else if node.attribute("euler").is_some()
+            || node.attribute("xyaxes").is_some()
+            || node.attribute("zaxis").is_some()
+        {
+            return Err(format!(
+                "{what}: give its orientation as quat or axisangle (euler, xyaxes and zaxis are not read)"
+            ));
+        } else {
+            UnitQuaternion::identity()
+        };
+        Ok(Isometry3::from_parts(Translation3::from(pos), rotation))
+    }
+
+    /// A visible geom's mesh in its body's frame; `None` for a hidden one.
+    fn geom(
+        &self,
+        node: Node<'a, 'a>,
+        class: &str,
+        body: &str,
+    ) -> Result<Option<crate::mesh::Mesh>, String> {
+        let what = format!("body {body}'s geom");
+        let group: i64 = self
+            .attr(node, class, "group")
+            .and_then(|g| g.parse().ok())
+            .unwrap_or(0);
+        if group > 2 {
+            return Ok(None);
+        }
+        let colour = match self.attr(node, class, "rgba") {
+            Some(rgba) => {
+                let v = numbers(rgba, &what)?;
+                [v[0] as f32, v[1] as f32, v[2] as f32]
+            }
+            None => self
+                .attr(node, class, "material")
+                .and_then(|m| self.materials.get(m).copied())
+                .unwrap_or([0.5, 0.5, 0.5]),
+        };
+        let material = Material::color(colour).with_specular(0.2, 20.0);
+        let kind =
+            self.attr(node, class, "type")
+                .unwrap_or(if self.attr(node, class, "mesh").is_some() {
+                    "mesh"
+                } else {
+                    "sphere"
+                });
+        let mut mesh = match kind {
+            "mesh" => {
+                let name = self
+                    .attr(node, class, "mesh")
+                    .ok_or_else(|| format!("{what} has type mesh but no mesh"))?;
+                let (file, scale) = self
+                    .meshes
+                    .get(name)
+                    .ok_or_else(|| format!("{what} names mesh {name}, which <asset> lacks"))?;
+                let path = self
+                    .path
+                    .parent()
+                    .unwrap_or(Path::new("."))
+                    .join(&self.meshdir)
+                    .join(file);
+                if !path.is_file() {
+                    return Err(format!(
+                        "{what}: mesh {name}: no such file {}",
+                        path.display()
+                    ));
+                }
+                let mut mesh = crate::loaders::load_mesh(&path).map_err(|e| e.to_string())?;
+                let s = vec3(Some(scale), &what, [1.0; 3])?.cast::<f32>();
+                for p in &mut mesh.positions {
+                    *p = Point3::new(p.x * s.x, p.y * s.y, p.z * s.z);
+                }
+                mesh.materials = vec![material];
+                mesh.triangle_materials = vec![0; mesh.triangles.len()];
+                mesh
+            }
+            "box" => {
+                let h = vec3(self.attr(node, class, "size"), &what, [0.0; 3])?.cast::<f32>();
+                let mut b = MeshBuilder::new(material);
+                b.cuboid(Point3::from(-h), Point3::from(h), 0);
+                b.finish()
+            }
+            "cylinder" => {
+                let size = numbers(self.attr(node, class, "size").unwrap_or("0 0"), &what)?;
+                let (r, h) = (
+                    size.first().copied().unwrap_or(0.0) as f32,
+                    size.get(1).copied().unwrap_or(0.0) as f32,
+                );
+                let mut b = MeshBuilder::new(material);
+                crate::gripper::cylinder(&mut b, r, -h, h, 32, 0);
+                b.finish()
+            }
+            other => {
+                return Err(format!(
+                    "{what} is a {other}; drawn are mesh, box and cylinder geoms (or put it in group 3)"
+                ));
+            }
+        };
+        let frame = self.frame(node, class, &what)?;
+        for p in &mut mesh.positions {
+            *p = (frame * p.cast::<f64>()).cast::<f32>();
+        }
+        mesh.normals.clear();
+        mesh.compute_normals();
+        Ok(Some(mesh))
+    }
+
+    /// The joint that places `body` (with class `class`) in its parent.
+    fn joint(
+        &self,
+        body: Node<'a, 'a>,
+        class: &str,
+        parent: &str,
+        name: &str,
+    ) -> Result<Joint, String> {
+        let origin = self.frame(body, class, &format!("body {name}"))?;
+        let joints: Vec<Node> = body
+            .children()
+            .filter(|n| n.has_tag_name("joint"))
+            .collect();
+        let Some(&j) = joints.first() else {
+            return Ok(Joint {
+                name: format!("{name} (fixed)"),
+                parent: parent.into(),
+                child: name.into(),
+                origin,
+                post: Isometry3::identity(),
+                axis: Vector3::z(),
+                motion: Motion::Fixed,
+                lower: 0.0,
+                upper: 0.0,
+                mimic: None,
+                actuated: false,
+            });
+        };
+        if joints.len() > 1 {
+            return Err(format!(
+                "body {name} has {} joints; a gripper's bodies have one at most",
+                joints.len()
+            ));
+        }
+        let class = j.attribute("class").unwrap_or(class);
+        let joint_name = j.attribute("name").unwrap_or(name).to_string();
+        let what = format!("joint {joint_name}");
+        let motion = match self.attr(j, class, "type").unwrap_or("hinge") {
+            "hinge" => Motion::Revolute,
+            "slide" => Motion::Prismatic,
+            other => {
+                return Err(format!(
+                    "{what} is a {other} joint; a gripper's joints are hinge or slide"
+                ));
+            }
+        };
+        let axis = vec3(self.attr(j, class, "axis"), &what, [0.0, 0.0, 1.0])?;
+        if axis.norm() < 1e-9 {
+            return Err(format!("{what} has a zero axis"));
+        }
+        let pos = vec3(self.attr(j, class, "pos"), &what, [0.0; 3])?;
+        let (mut lower, mut upper) = (0.0, 0.0);
+        if let Some(range) = self.attr(j, class, "range") {
+            match numbers(range, &what)?.as_slice() {
+                [a, b] => (lower, upper) = (*a, *b),
+                _ => return Err(format!("{what}: range `{range}` needs two numbers")),
+            }
+            if motion == Motion::Revolute {
+                (lower, upper) = (self.angle(lower), self.angle(upper));
+            }
+        }
+        Ok(Joint {
+            name: joint_name,
+            parent: parent.into(),
+            child: name.into(),
+            origin: origin * Isometry3::translation(pos.x, pos.y, pos.z),
+            post: Isometry3::translation(-pos.x, -pos.y, -pos.z),
+            axis: axis.normalize(),
+            motion,
+            lower,
+            upper,
+            mimic: None,
+            actuated: false,
+        })
+    }
+
+    /// Walks the bodies under `node` (the body `name`, class `class`).
+    fn subtree(
+        &self,
+        node: Node<'a, 'a>,
+        name: &str,
+        class: &str,
+        tree: &mut Tree,
+    ) -> Result<(), String> {
+        for geom in node.children().filter(|n| n.has_tag_name("geom")) {
+            if let Some(mesh) = self.geom(geom, class, name)? {
+                tree.meshes.push(LinkMesh {
+                    link: name.into(),
+                    mesh,
+                });
+            }
+        }
+        for site in node.children().filter(|n| n.has_tag_name("site")) {
+            if let Some(site_name) = site.attribute("name") {
+                tree.joints.push(Joint {
+                    name: format!("{site_name} (site)"),
+                    parent: name.into(),
+                    child: site_name.into(),
+                    origin: self.frame(site, class, &format!("site {site_name}"))?,
+                    post: Isometry3::identity(),
+                    axis: Vector3::z(),
+                    motion: Motion::Fixed,
+                    lower: 0.0,
+                    upper: 0.0,
+                    mimic: None,
+                    actuated: false,
+                });
+            }
+        }
+        for (k, child) in node
+            .children()
+            .filter(|n| n.has_tag_name("body"))
+            .enumerate()
+        {
+            let child_name = child
+                .attribute("name")
+                .map_or_else(|| format!("{name}/body{k}"), String::from);
+            let child_class = child.attribute("childclass").unwrap_or(class);
+            tree.joints
+                .push(self.joint(child, child_class, name, &child_name)?);
+            self.subtree(child, &child_name, child_class, tree)?;
+        }
+        Ok(())
+    }
+}
+
+/// Finds the body `name` under `node`, with the class in force for it.
+fn find_body<'a>(node: Node<'a, 'a>, name: &str, class: &str) -> Option<(Node<'a, 'a>, String)> {
+    for body in node.children().filter(|n| n.has_tag_name("body")) {
+        let class = body.attribute("childclass").unwrap_or(class);
+        if body.attribute("name") == Some(name) {
+            return Some((body, class.to_string()));
+        }
+        if let Some(found) = find_body(body, name, class) {
+            return Some(found);
+        }
+    }
+    None
+}
+
+/// The gripper under body `root` of the MJCF `text` at `path`.
+pub(crate) fn tree(text: &str, path: &Path, root: &str) -> Result<Tree, String> {
+    let doc = Document::parse(text).map_err(|e| format!("not readable XML: {e}"))?;
+    let mujoco = doc.root_element();
+    let compiler = mujoco.children().find(|n| n.has_tag_name("compiler"));
+    let mut reader = Reader {
+        path,
+        defaults: Defaults::read(mujoco),
+        radians: compiler.and_then(|c| c.attribute("angle")) == Some("radian"),
+        meshdir: compiler
+            .and_then(|c| c.attribute("meshdir"))
+            .unwrap_or("")
+            .to_string(),
+        meshes: BTreeMap::new(),
+        materials: BTreeMap::new(),
+    };
+    for asset in mujoco.children().filter(|n| n.has_tag_name("asset")) {
+        for m in asset.children().filter(|n| n.has_tag_name("mesh")) {
+            let file = m.attribute("file").ok_or("a <mesh> asset has no file")?;
+            let name = m.attribute("name").map_or_else(
+                || {
+                    Path::new(file)
+                        .file_stem()
+                        .map_or(file.to_string(), |s| s.to_string_lossy().into_owned())
+                },
+                String::from,
+            );
+            let scale = reader
+                .attr(m, "main", "scale")
+                .unwrap_or("1 1 1")
+                .to_string();
+            reader.meshes.insert(name, (file.to_string(), scale));
+        }
+        for m in asset.children().filter(|n| n.has_tag_name("material")) {
+            if let (Some(name), Some(rgba)) = (m.attribute("name"), m.attribute("rgba")) {
+                let v = numbers(rgba, &format!("material {name}"))?;
+                reader
+                    .materials
+                    .insert(name.into(), [v[0] as f32, v[1] as f32, v[2] as f32]);
+            }
+        }
+    }
+    let world = mujoco
+        .children()
+        .find(|n| n.has_tag_name("worldbody"))
+        .ok_or("no <worldbody>")?;
+    let (body, class) = find_body(world, root, "main").ok_or_else(|| {
+        let mut names = Vec::new();
+        for n in world.descendants().filter(|n| n.has_tag_name("body")) {
+            names.extend(n.attribute("name").map(String::from));
+        }
+        format!(
+            "no body `{root}` (--gripper-root); its bodies are {}",
+            names.join(", ")
+        )
+    })?;
+    let mut tree = Tree::default();
+    reader.subtree(body, root, &class, &mut tree)?;
+    equalities(mujoco, &mut tree)?;
+    mark_actuated(mujoco, &mut tree);
+    Ok(tree)
+}
+
+/// `<equality>`: joint couplings as mimics, `connect`s as loop closures
+/// (the anchor's partner point taken at the rest pose, as MuJoCo does).
+fn equalities(mujoco: Node, tree: &mut Tree) -> Result<(), String> {
+    let rest = rest_poses(tree);
+    for eq in mujoco.children().filter(|n| n.has_tag_name("equality")) {
+        for c in eq.children().filter(|n| n.is_element()) {
+            match c.tag_name().name() {
+                "joint" => {
+                    let (a, b) = (
+                        c.attribute("joint1").unwrap_or(""),
+                        c.attribute("joint2").unwrap_or(""),
+                    );
+                    let coef = numbers(c.attribute("polycoef").unwrap_or("0 1 0 0 0"), "polycoef")?;
+                    if coef.iter().skip(2).any(|&v| v != 0.0) {
+                        return Err(format!(
+                            "the coupling of {a} to {b} is not linear (polycoef beyond the second)"
+                        ));
+                    }
+                    if let Some(j) = tree.joints.iter_mut().find(|j| j.name == a) {
+                        j.mimic = Some((b.into(), coef.get(1).copied().unwrap_or(1.0), coef[0]));
+                    }
+                }
+                "connect" => {
+                    let (a, b) = (
+                        c.attribute("body1").unwrap_or(""),
+                        c.attribute("body2").unwrap_or(""),
+                    );
+                    let (Some(pa), Some(pb)) = (rest.get(a), rest.get(b)) else {
+                        continue; // a loop outside the gripper
+                    };
+                    let anchor = vec3(c.attribute("anchor"), "connect anchor", [0.0; 3])?;
+                    let anchor_a = Point3::from(anchor);
+                    tree.closures.push(Closure {
+                        link_a: a.into(),
+                        anchor_a,
+                        link_b: b.into(),
+                        anchor_b: pb.inverse() * (pa * anchor_a),
+                    });
+                }
+                _ => {}
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Each body's pose in the root at rest (every joint at 0).
+fn rest_poses(tree: &Tree) -> BTreeMap<String, Isometry3<f64>> {
+    let mut poses = BTreeMap::new();
+    for j in &tree.joints {
+        let parent = poses
+            .get(&j.parent)
+            .copied()
+            .unwrap_or_else(Isometry3::identity);
+        poses.insert(j.child.clone(), parent * j.origin * j.post);
+    }
+    poses
+}
+
+/// The joints the actuators drive (directly or through a fixed tendon);
+/// every moving joint when no actuator names one.
+fn mark_actuated(mujoco: Node, tree: &mut Tree) {
+    let mut tendons: BTreeMap<&str, Vec<&str>> = BTreeMap::new();
+    for t in mujoco.children().filter(|n| n.has_tag_name("tendon")) {
+        for fixed in t.children().filter(|n| n.has_tag_name("fixed")) {
+            let joints = fixed
+                .children()
+                .filter(|n| n.has_tag_name("joint"))
+                .filter_map(|n| n.attribute("joint"))
+                .collect();
+            tendons.insert(fixed.attribute("name").unwrap_or(""), joints);
+        }
+    }
+    let mut driven: Vec<&str> = Vec::new();
+    for a in mujoco.children().filter(|n| n.has_tag_name("actuator")) {
+        for act in a.children().filter(|n| n.is_element()) {
+            driven.extend(act.attribute("joint"));
+            if let Some(t) = act.attribute("tendon") {
+                driven.extend(tendons.get(t).into_iter().flatten());
+            }
+        }
+    }
+    let any = tree
+        .joints
+        .iter()
+        .any(|j| driven.contains(&j.name.as_str()));
+    for j in &mut tree.joints {
+        j.actuated = j.motion != Motion::Fixed
+            && j.mimic.is_none()
+            && (driven.contains(&j.name.as_str()) || (!any && tree.closures.is_empty()));
+    }
+}
