@@ -205,6 +205,38 @@ struct Recording {
     phases: Vec<(i64, Phase)>,
     joints: BTreeMap<String, Vec<(i64, f64)>>,
     joint_names: Vec<String>,
+    /// Decoded images not yet written (PNG encoding runs in parallel).
+    pending: Vec<(PathBuf, Decoded)>,
+}
+
+#[derive(Debug)]
+enum Decoded {
+    Rgb(RgbImage),
+    Depth(DepthMm),
+}
+
+/// Images encoded together: enough for both cores, little memory.
+const PENDING_IMAGES: usize = 16;
+
+impl Recording {
+    fn write_pending(&mut self) -> Result<(), RosError> {
+        use rayon::prelude::*;
+        std::mem::take(&mut self.pending)
+            .par_iter()
+            .try_for_each(|(path, image)| match image {
+                Decoded::Rgb(rgb) => write_rgb(path, rgb),
+                Decoded::Depth(depth) => write_depth(path, depth),
+            })?;
+        Ok(())
+    }
+
+    fn queue(&mut self, path: PathBuf, image: Decoded) -> Result<(), RosError> {
+        self.pending.push((path, image));
+        if self.pending.len() >= PENDING_IMAGES {
+            self.write_pending()?;
+        }
+        Ok(())
+    }
 }
 
 /// Imports the bag at `bag` into a new capture at `out` (which must not
@@ -321,6 +353,7 @@ fn read_recording(
         }
         Ok(())
     })?;
+    rec.write_pending()?;
     rec.tf.finish();
     rec.phases.sort_by_key(|(t, _)| *t);
     rec.images.sort_by_key(|i| i.stamp_ns);
@@ -370,23 +403,25 @@ fn read_message(
         )?;
         let (stamp, frame_id, image) = decode_colour(m).map_err(decode_error)?;
         let path = format!("images/{:06}.png", rec.images.len());
-        write_rgb(&staging.join(&path), &image)?;
+        let size = (image.width, image.height);
+        rec.queue(staging.join(&path), Decoded::Rgb(image))?;
         rec.images.push(Stamped {
             stamp_ns: stamp,
             frame_id,
             path,
-            size: (image.width, image.height),
+            size,
         });
     } else if m.topic == s.depth_topic {
         expect_type(bag, m, &["sensor_msgs/msg/Image"])?;
         let (stamp, frame_id, depth) = decode_depth(m.data).map_err(decode_error)?;
         let path = format!("depth/{:06}.png", rec.depths.len());
-        write_depth(&staging.join(&path), &depth)?;
+        let size = (depth.width, depth.height);
+        rec.queue(staging.join(&path), Decoded::Depth(depth))?;
         rec.depths.push(Stamped {
             stamp_ns: stamp,
             frame_id,
             path,
-            size: (depth.width, depth.height),
+            size,
         });
     } else if m.topic == s.camera_info_topic {
         expect_type(bag, m, &["sensor_msgs/msg/CameraInfo"])?;
