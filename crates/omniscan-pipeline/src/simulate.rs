@@ -121,7 +121,6 @@ pub struct SimulateSettings {
         long,
         requires = "robot_urdf",
         value_delimiter = ',',
-        num_args = 3,
         allow_negative_numbers = true
     )]
     pub tcp_offset_m: Option<Vec<f64>>,
@@ -160,10 +159,11 @@ impl SimulateSettings {
                     description: urdf.display().to_string(),
                     gripper_root: self.gripper_root.clone().unwrap_or_default(),
                     tcp_link: self.tcp_link.clone(),
-                    tcp_offset_m: self
-                        .tcp_offset_m
-                        .as_ref()
-                        .map(|v| [0, 1, 2].map(|i| v.get(i).copied().unwrap_or(f64::NAN))),
+                    tcp_offset_m: self.tcp_offset_m.as_ref().map(|v| match v.as_slice() {
+                        [x, y, z] => [*x, *y, *z],
+                        // Refused by the gripper's loader, which names it.
+                        _ => [f64::NAN; 3],
+                    }),
                 }),
         }
     }

@@ -254,7 +254,7 @@ impl RobotGripper {
                 Ok(Isometry3::translation(x, y, z))
             }
             (None, Some(v)) => Err(format!(
-                "the TCP offset must be three finite metres, got {v:?}"
+                "the TCP offset must be three finite numbers of metres, X,Y,Z (got {v:?})"
             )),
             _ => Err(
                 "give the TCP as a link or as an offset from the gripper root, one of the two"
