@@ -5,27 +5,47 @@
 use std::path::Path;
 
 use anyhow::Result;
-pub use omniscan_ros::{ImportReport, Ros2ImportSettings};
+pub use omniscan_ros::ImportReport;
+use omniscan_ros::Ros2ImportSettings;
+use serde::{Deserialize, Serialize};
 
 use crate::Progress;
+use crate::settings::{RobotArgs, default_from_flags};
+
+/// How a ROS 2 bag becomes a capture: the recording's conventions
+/// (docs/ros2.md) and the robot.
+#[derive(clap::Args, Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct ImportSettings {
+    #[command(flatten)]
+    #[serde(flatten)]
+    pub ros: Ros2ImportSettings,
+    #[command(flatten)]
+    #[serde(flatten)]
+    pub robot: RobotArgs,
+}
+
+default_from_flags!(ImportSettings);
 
 /// Imports the ROS 2 bag at `bag` into a new capture folder `out` (which
 /// must not exist; it appears whole or not at all).
 pub fn import_ros2(
     bag: &Path,
     out: &Path,
-    settings: &Ros2ImportSettings,
+    settings: &ImportSettings,
     progress: &dyn Progress,
 ) -> Result<ImportReport> {
-    // The robot's gripper is loaded first: a capture that names a URDF
-    // the masks cannot use is not made.
-    if let Some(robot) = settings.robot() {
-        omniscan_sim::gripper::GripperModel::from_robot(&robot, Path::new("."))?;
+    // The robot's gripper is loaded first: a capture that names a
+    // description the masks cannot use is not made.
+    let robot = settings.robot.spec();
+    if let Some(robot) = &robot {
+        omniscan_sim::gripper::GripperModel::from_robot(robot, Path::new("."))?;
     }
     progress.start("reading the bag", 0, "images");
     // The library's errors name the bag, topic, frame and time already.
-    let report =
-        omniscan_ros::import_ros2(bag, out, settings, &|images| progress.set(images as u64));
+    let report = omniscan_ros::import_ros2(bag, out, &settings.ros, robot.as_ref(), &|images| {
+        progress.set(images as u64)
+    });
     progress.finish();
     Ok(report?)
 }

@@ -25,6 +25,53 @@ macro_rules! default_from_flags {
 }
 pub(crate) use default_from_flags;
 
+/// Another robot's gripper, the flags `sim` and `import ros2` share.
+#[derive(clap::Args, Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
+pub struct RobotArgs {
+    /// Another robot's gripper: its URDF (meshes STL, OBJ or PLY; package:// paths resolve the ROS way). The capture records it, so `mask` draws the same gripper. Default: the ABB YuMi. docs/simulate.md
+    #[arg(long, group = "robot", requires = "gripper_root")]
+    pub robot_urdf: Option<std::path::PathBuf>,
+    /// Another robot's gripper from a MuJoCo MJCF file (bodies, hinge and slide joints, equality couplings and connect loops, actuators).
+    #[arg(long, group = "robot", requires = "gripper_root")]
+    pub robot_mjcf: Option<std::path::PathBuf>,
+    /// The link (MJCF: body) whose subtree is the gripper.
+    #[arg(long, requires = "robot")]
+    pub gripper_root: Option<String>,
+    /// The tool (TCP) frame: a link (or MJCF site) fixed to the gripper root, z the approach, x the closing direction, its origin between the pads.
+    #[arg(long, requires = "robot", conflicts_with = "tcp_offset_m")]
+    pub tcp_link: Option<String>,
+    /// The TCP as an offset from the gripper root's origin in its axes, metres: X,Y,Z.
+    #[arg(
+        long,
+        requires = "robot",
+        value_delimiter = ',',
+        allow_negative_numbers = true
+    )]
+    pub tcp_offset_m: Option<Vec<f64>>,
+}
+
+impl RobotArgs {
+    /// The robot the flags name, its description's path made absolute (a
+    /// capture records it and is read from elsewhere); `None` for the YuMi.
+    pub fn spec(&self) -> Option<omniscan_core::capture::RobotSpec> {
+        let path = self.robot_urdf.as_ref().or(self.robot_mjcf.as_ref())?;
+        Some(omniscan_core::capture::RobotSpec {
+            description: std::path::absolute(path)
+                .unwrap_or_else(|_| path.clone())
+                .display()
+                .to_string(),
+            gripper_root: self.gripper_root.clone().unwrap_or_default(),
+            tcp_link: self.tcp_link.clone(),
+            tcp_offset_m: self.tcp_offset_m.as_ref().map(|v| match v.as_slice() {
+                [x, y, z] => [*x, *y, *z],
+                // Refused by the gripper's loader, which names it.
+                _ => [f64::NAN; 3],
+            }),
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use crate::align::{AlignSettings, Method};

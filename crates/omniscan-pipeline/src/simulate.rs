@@ -2,7 +2,6 @@
 //! a real textured mesh held by a real gripper model, turned through the
 //! scan plan by each arm in turn, rendered with depth and ground truth.
 
-use omniscan_core::capture::RobotSpec;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
@@ -12,7 +11,7 @@ use omniscan_core::plan::ScanPlanConfig;
 use omniscan_sim::{SimConfig, SimSummary, Simulation};
 
 use crate::Progress;
-use crate::settings::default_from_flags;
+use crate::settings::{RobotArgs, default_from_flags};
 
 /// The scan trajectory: wrist angles at each of several latitudes.
 #[derive(clap::Args, Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -80,7 +79,7 @@ pub struct SimulateSettings {
     #[arg(long, default_value_t = 2.0)]
     pub depth_noise_mm_at_1m: f64,
     /// Directory with the YuMi gripper meshes (e.g. ../shared/data/grippers/yumi).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "robot")]
     pub gripper_dir: Option<PathBuf>,
     /// Camera distance from the object, metres (default: from the object's size).
     #[arg(long)]
@@ -94,36 +93,9 @@ pub struct SimulateSettings {
     /// The same for translation: RMS offset per frame, millimetres.
     #[arg(long, default_value_t = 0.0)]
     pub pose_noise_mm: f64,
-    /// Another robot's gripper: its URDF (meshes STL, OBJ or PLY; package:// paths resolve the ROS way). The capture records it, so `mask` uses the same gripper. Default: the ABB YuMi.
-    #[arg(
-        long,
-        group = "robot",
-        requires = "gripper_root",
-        conflicts_with = "gripper_dir"
-    )]
-    pub robot_urdf: Option<PathBuf>,
-    /// Another robot's gripper from a MuJoCo MJCF file (bodies, hinge and slide joints, equality couplings and connect loops, actuators; docs/simulate.md).
-    #[arg(
-        long,
-        group = "robot",
-        requires = "gripper_root",
-        conflicts_with = "gripper_dir"
-    )]
-    pub robot_mjcf: Option<PathBuf>,
-    /// The URDF link whose subtree is the gripper.
-    #[arg(long, requires = "robot")]
-    pub gripper_root: Option<String>,
-    /// The tool (TCP) frame: a link fixed to the gripper root, z the approach, x the closing direction, its origin between the pads.
-    #[arg(long, requires = "gripper_root", conflicts_with = "tcp_offset_m")]
-    pub tcp_link: Option<String>,
-    /// The TCP as an offset from the gripper root's origin in its axes, metres: X,Y,Z.
-    #[arg(
-        long,
-        requires = "robot_urdf",
-        value_delimiter = ',',
-        allow_negative_numbers = true
-    )]
-    pub tcp_offset_m: Option<Vec<f64>>,
+    #[command(flatten)]
+    #[serde(flatten)]
+    pub robot: RobotArgs,
     #[command(flatten)]
     #[serde(flatten)]
     pub plan: PlanSettings,
@@ -151,20 +123,7 @@ impl SimulateSettings {
             empty_pass: !self.no_empty_pass,
             pose_noise_deg: self.pose_noise_deg,
             pose_noise_mm: self.pose_noise_mm,
-            robot: self
-                .robot_urdf
-                .as_ref()
-                .or(self.robot_mjcf.as_ref())
-                .map(|urdf| RobotSpec {
-                    description: urdf.display().to_string(),
-                    gripper_root: self.gripper_root.clone().unwrap_or_default(),
-                    tcp_link: self.tcp_link.clone(),
-                    tcp_offset_m: self.tcp_offset_m.as_ref().map(|v| match v.as_slice() {
-                        [x, y, z] => [*x, *y, *z],
-                        // Refused by the gripper's loader, which names it.
-                        _ => [f64::NAN; 3],
-                    }),
-                }),
+            robot: self.robot.spec(),
         }
     }
 }

@@ -129,7 +129,7 @@ fn default_json(stage: &str) -> Result<serde_json::Value> {
         "view" => json::<share::ViewSettings>(),
         "mesh" => json::<geometry::MeshSettings>(),
         "asset" => json::<geometry::AssetSettings>(),
-        "import_ros2" => json::<omniscan_pipeline::import::Ros2ImportSettings>(),
+        "import_ros2" => json::<omniscan_pipeline::import::ImportSettings>(),
         other => bail!("no stage `{other}`: the stages are {}", STAGES.join(", ")),
     }
 }

@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use omniscan_core::capture::{
-    Arm, CAPTURE_VERSION, CameraSpec, Capture, CaptureFile, Frame, Handover,
+    Arm, CAPTURE_VERSION, CameraSpec, Capture, CaptureFile, Frame, Handover, RobotSpec,
 };
 use omniscan_core::geometry::{Pose, RigidTransform, pose_difference};
 use omniscan_core::image_io::{DepthMm, RgbImage, write_depth, write_rgb};
@@ -77,46 +77,6 @@ pub struct Ros2ImportSettings {
     /// millimetres (and a tenth of this in degrees).
     #[arg(long, default_value_t = Ros2ImportSettings::default().camera_drift_mm)]
     pub camera_drift_mm: f64,
-    /// The robot's URDF, recorded in the capture so that `mask` draws its gripper (default: the ABB YuMi).
-    #[arg(long, group = "robot", requires = "gripper_root")]
-    pub robot_urdf: Option<PathBuf>,
-    /// The robot's MuJoCo MJCF file instead of a URDF.
-    #[arg(long, group = "robot", requires = "gripper_root")]
-    pub robot_mjcf: Option<PathBuf>,
-    /// The URDF link whose subtree is the gripper.
-    #[arg(long, requires = "robot")]
-    pub gripper_root: Option<String>,
-    /// The tool (TCP) frame as a URDF link fixed to the gripper root.
-    #[arg(long, requires = "gripper_root", conflicts_with = "tcp_offset_m")]
-    pub tcp_link: Option<String>,
-    /// The TCP as an offset from the gripper root's origin in its axes, metres: X,Y,Z.
-    #[arg(
-        long,
-        requires = "robot_urdf",
-        value_delimiter = ',',
-        allow_negative_numbers = true
-    )]
-    pub tcp_offset_m: Option<Vec<f64>>,
-}
-
-impl Ros2ImportSettings {
-    /// The robot the flags name, its URDF path made absolute.
-    pub fn robot(&self) -> Option<omniscan_core::capture::RobotSpec> {
-        let urdf = self.robot_urdf.as_ref().or(self.robot_mjcf.as_ref())?;
-        Some(omniscan_core::capture::RobotSpec {
-            description: std::path::absolute(urdf)
-                .unwrap_or_else(|_| urdf.clone())
-                .display()
-                .to_string(),
-            gripper_root: self.gripper_root.clone().unwrap_or_default(),
-            tcp_link: self.tcp_link.clone(),
-            tcp_offset_m: self.tcp_offset_m.as_ref().map(|v| match v.as_slice() {
-                [x, y, z] => [*x, *y, *z],
-                // Refused by the gripper's loader, which names it.
-                _ => [f64::NAN; 3],
-            }),
-        })
-    }
 }
 
 impl Default for Ros2ImportSettings {
@@ -136,11 +96,6 @@ impl Default for Ros2ImportSettings {
             right_finger_joint: "gripper_r_joint".into(),
             opening_m_per_joint_unit: 2.0,
             camera_drift_mm: 1.0,
-            robot_urdf: None,
-            robot_mjcf: None,
-            gripper_root: None,
-            tcp_link: None,
-            tcp_offset_m: None,
         }
     }
 }
@@ -240,11 +195,13 @@ impl Recording {
 }
 
 /// Imports the bag at `bag` into a new capture at `out` (which must not
-/// exist). `progress(images)` is called as images are read.
+/// exist), recording `robot` as its gripper (the YuMi when `None`).
+/// `progress(images)` is called as images are read.
 pub fn import_ros2(
     bag: &Path,
     out: &Path,
     settings: &Ros2ImportSettings,
+    robot: Option<&RobotSpec>,
     progress: &dyn Fn(usize),
 ) -> Result<ImportReport, RosError> {
     let start = Instant::now();
@@ -266,7 +223,8 @@ pub fn import_ros2(
         .map_err(|e| CoreError::io(parent, e))?;
     let bag = Bag::open(bag)?;
     let recording = read_recording(&bag, staging.path(), settings, progress)?;
-    let (file, mut report) = assemble(&bag, &recording, settings)?;
+    let (mut file, mut report) = assemble(&bag, &recording, settings)?;
+    file.robot = robot.cloned();
     for unused in unused_images(&recording, &file) {
         let path = staging.path().join(unused);
         std::fs::remove_file(&path).map_err(|e| CoreError::io(&path, e))?;
@@ -815,7 +773,7 @@ fn assemble(
         frames,
         empty_frames,
         gt: None,
-        robot: s.robot(),
+        robot: None,
         generator: Some(serde_json::json!({
             "name": "omniscan import ros2",
             "version": env!("CARGO_PKG_VERSION"),

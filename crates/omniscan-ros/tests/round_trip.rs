@@ -460,7 +460,14 @@ fn a_simulated_capture_comes_back_from_mcap_and_sqlite_bags() {
     let mcap_path = tmp.path().join("scan.mcap");
     write_mcap(&mcap_path, &messages);
     let out = tmp.path().join("from-mcap");
-    let report = import_ros2(&mcap_path, &out, &Ros2ImportSettings::default(), &|_| {}).unwrap();
+    let report = import_ros2(
+        &mcap_path,
+        &out,
+        &Ros2ImportSettings::default(),
+        None,
+        &|_| {},
+    )
+    .unwrap();
     assert_eq!(report.skipped_images, 0);
     assert_eq!(report.distortion, None);
     assert_round_trip(&original, &Capture::load(&out).unwrap());
@@ -468,7 +475,14 @@ fn a_simulated_capture_comes_back_from_mcap_and_sqlite_bags() {
     let sqlite_dir = tmp.path().join("scan_bag");
     write_sqlite(&sqlite_dir, &messages);
     let out = tmp.path().join("from-sqlite");
-    import_ros2(&sqlite_dir, &out, &Ros2ImportSettings::default(), &|_| {}).unwrap();
+    import_ros2(
+        &sqlite_dir,
+        &out,
+        &Ros2ImportSettings::default(),
+        None,
+        &|_| {},
+    )
+    .unwrap();
     assert_round_trip(&original, &Capture::load(&out).unwrap());
 }
 
@@ -480,23 +494,23 @@ fn camera_info_distortion_is_recorded_in_the_capture() {
     let path = tmp.path().join("scan.mcap");
     write_mcap(&path, &recording(&original, &d));
     let out = tmp.path().join("capture");
-    let settings = Ros2ImportSettings {
-        robot_urdf: Some("robots/hand.urdf".into()),
-        gripper_root: Some("palm".into()),
-        tcp_offset_m: Some(vec![0.0, 0.0, 0.07]),
-        ..Ros2ImportSettings::default()
+    let hand = omniscan_core::capture::RobotSpec {
+        description: "/robots/hand.urdf".into(),
+        gripper_root: "palm".into(),
+        tcp_link: None,
+        tcp_offset_m: Some([0.0, 0.0, 0.07]),
     };
-    import_ros2(&path, &out, &settings, &|_| {}).unwrap();
+    import_ros2(
+        &path,
+        &out,
+        &Ros2ImportSettings::default(),
+        Some(&hand),
+        &|_| {},
+    )
+    .unwrap();
     let imported = Capture::load(&out).unwrap();
     let robot = imported.file.robot.as_ref().unwrap();
-    assert!(
-        Path::new(&robot.description).is_absolute()
-            && robot.description.ends_with("robots/hand.urdf")
-    );
-    assert_eq!(
-        (robot.gripper_root.as_str(), robot.tcp_offset_m),
-        ("palm", Some([0.0, 0.0, 0.07]))
-    );
+    assert_eq!(robot, &hand);
     assert_eq!(
         imported.distortion(),
         Some(&Distortion::RadialTangential {
@@ -510,7 +524,7 @@ fn camera_info_distortion_is_recorded_in_the_capture() {
 }
 
 fn import_error(bag: &Path, out: &Path, settings: &Ros2ImportSettings) -> String {
-    let e = import_ros2(bag, out, settings, &|_| {})
+    let e = import_ros2(bag, out, settings, None, &|_| {})
         .unwrap_err()
         .to_string();
     assert!(!out.exists(), "a failed import left {}", out.display());
@@ -596,6 +610,7 @@ fn bad_recordings_are_refused_by_topic_frame_and_time_and_leave_nothing() {
             max_tf_gap_s: 0.5,
             ..defaults.clone()
         },
+        None,
         &|_| {},
     )
     .unwrap();
@@ -649,7 +664,7 @@ fn bad_recordings_are_refused_by_topic_frame_and_time_and_leave_nothing() {
     let e = import_error(&tmp.path().join("sim/capture.json"), &out, &defaults);
     assert!(e.contains("neither an .mcap nor a .db3"), "{e}");
     std::fs::create_dir_all(&out).unwrap();
-    let e = import_ros2(&bag, &out, &defaults, &|_| {})
+    let e = import_ros2(&bag, &out, &defaults, None, &|_| {})
         .unwrap_err()
         .to_string();
     assert!(e.contains("already exists"), "{e}");

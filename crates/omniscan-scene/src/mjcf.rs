@@ -262,19 +262,12 @@ impl<'a> Reader<'a> {
             .filter(|n| n.has_tag_name("joint"))
             .collect();
         let Some(&j) = joints.first() else {
-            return Ok(Joint {
-                name: format!("{name} (fixed)"),
-                parent: parent.into(),
-                child: name.into(),
+            return Ok(Joint::fixed(
+                format!("{name} (fixed)"),
+                parent,
+                name,
                 origin,
-                post: Isometry3::identity(),
-                axis: Vector3::z(),
-                motion: Motion::Fixed,
-                lower: 0.0,
-                upper: 0.0,
-                mimic: None,
-                actuated: false,
-            });
+            ));
         };
         if joints.len() > 1 {
             return Err(format!(
@@ -342,19 +335,13 @@ impl<'a> Reader<'a> {
         }
         for site in node.children().filter(|n| n.has_tag_name("site")) {
             if let Some(site_name) = site.attribute("name") {
-                tree.joints.push(Joint {
-                    name: format!("{site_name} (site)"),
-                    parent: name.into(),
-                    child: site_name.into(),
-                    origin: self.frame(site, class, &format!("site {site_name}"))?,
-                    post: Isometry3::identity(),
-                    axis: Vector3::z(),
-                    motion: Motion::Fixed,
-                    lower: 0.0,
-                    upper: 0.0,
-                    mimic: None,
-                    actuated: false,
-                });
+                let origin = self.frame(site, class, &format!("site {site_name}"))?;
+                tree.joints.push(Joint::fixed(
+                    format!("{site_name} (site)"),
+                    name,
+                    site_name,
+                    origin,
+                ));
             }
         }
         for (k, child) in node

@@ -54,6 +54,25 @@ pub(crate) struct Joint {
     pub actuated: bool,
 }
 
+impl Joint {
+    /// A link fixed to its parent at `origin`.
+    pub fn fixed(name: String, parent: &str, child: &str, origin: Isometry3<f64>) -> Joint {
+        Joint {
+            name,
+            parent: parent.into(),
+            child: child.into(),
+            origin,
+            post: Isometry3::identity(),
+            axis: Vector3::z(),
+            motion: Motion::Fixed,
+            lower: 0.0,
+            upper: 0.0,
+            mimic: None,
+            actuated: false,
+        }
+    }
+}
+
 /// One link's visual geometry in its own frame.
 #[derive(Debug, Clone)]
 pub(crate) struct LinkMesh {

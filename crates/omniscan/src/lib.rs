@@ -53,7 +53,7 @@ enum ImportSource {
         #[arg(long)]
         out: PathBuf,
         #[command(flatten)]
-        settings: omniscan_pipeline::import::Ros2ImportSettings,
+        settings: omniscan_pipeline::import::ImportSettings,
         /// Print the report as JSON.
         #[arg(long)]
         json: bool,
@@ -712,7 +712,7 @@ fn mesh(
 fn import_ros2(
     bag: &std::path::Path,
     out: &std::path::Path,
-    settings: &omniscan_pipeline::import::Ros2ImportSettings,
+    settings: &omniscan_pipeline::import::ImportSettings,
     json: bool,
     bars: &omniscan_pipeline::Bars,
 ) -> Result<()> {
