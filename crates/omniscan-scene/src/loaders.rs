@@ -1,6 +1,8 @@
-//! Mesh files: OBJ (+MTL + texture, through `tobj`), STL (binary and ASCII)
-//! and PLY (through omniscan-core's reader). Units are whatever the file
-//! uses; the caller scales to metres.
+//! Mesh files: OBJ (+MTL + texture, through `tobj`), STL (binary and ASCII),
+//! PLY (through omniscan-core's reader) and COLLADA (`.dae`, through
+//! `mesh-loader`, which robot descriptions use; its nodes' transforms and
+//! `<unit>` applied, `up_axis` not, as ROS's viewers do). Units are
+//! whatever the file uses; the caller scales to metres.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -21,10 +23,11 @@ pub fn load_mesh(path: &Path) -> Result<Mesh, SceneError> {
         "obj" => load_obj(path)?,
         "stl" => load_stl(path)?,
         "ply" => load_ply(path)?,
+        "dae" => load_collada(path)?,
         _ => {
             return Err(SceneError::mesh(
                 path,
-                "unsupported mesh format: use .obj (with .mtl and texture), .stl or .ply",
+                "unsupported mesh format: use .obj (with .mtl and texture), .stl, .ply or .dae",
             ));
         }
     };
@@ -154,6 +157,64 @@ fn load_obj(path: &Path) -> Result<Mesh, SceneError> {
         tracing::warn!("{}: some parts have no texture coordinates", path.display());
     }
     Ok(out)
+}
+
+fn load_collada(path: &Path) -> Result<Mesh, SceneError> {
+    check_collada_units(path)?;
+    let scene = mesh_loader::Loader::default()
+        .merge_meshes(true)
+        .load_collada(path)
+        .map_err(|e| SceneError::mesh(path, format!("not a readable COLLADA file: {e}")))?;
+    let mut mesh = Mesh::default();
+    for part in &scene.meshes {
+        let base = mesh.positions.len() as u32;
+        mesh.positions
+            .extend(part.vertices.iter().map(|&[x, y, z]| Point3::new(x, y, z)));
+        mesh.triangles
+            .extend(part.faces.iter().map(|f| f.map(|i| i + base)));
+    }
+    Ok(mesh)
+}
+
+/// `mesh-loader` (0.1.13) scales a COLLADA file's vertices by its `<unit>`
+/// but not its nodes' translations: a file in millimetres whose parts are
+/// moved by their nodes would come out with the parts misplaced, so it is
+/// refused here rather than drawn wrong.
+fn check_collada_units(path: &Path) -> Result<(), SceneError> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| SceneError::Core(omniscan_core::CoreError::io(path, e)))?;
+    let doc = roxmltree::Document::parse(&text)
+        .map_err(|e| SceneError::mesh(path, format!("not a readable COLLADA file: {e}")))?;
+    let unit: f64 = doc
+        .descendants()
+        .find(|n| n.has_tag_name("unit"))
+        .and_then(|n| n.attribute("meter"))
+        .and_then(|m| m.trim().replace(',', ".").parse().ok())
+        .unwrap_or(1.0);
+    let moves = |n: &roxmltree::Node| {
+        let values: Vec<f64> = n
+            .text()
+            .unwrap_or("")
+            .split_whitespace()
+            .filter_map(|v| v.parse().ok())
+            .collect();
+        match n.tag_name().name() {
+            "translate" => values.iter().any(|v| *v != 0.0),
+            "matrix" => [3, 7, 11]
+                .iter()
+                .any(|&i| values.get(i).is_some_and(|v| *v != 0.0)),
+            _ => false,
+        }
+    };
+    if unit != 1.0 && doc.descendants().any(|n| moves(&n)) {
+        return Err(SceneError::mesh(
+            path,
+            format!(
+                "a COLLADA file in units of {unit} m whose nodes move its parts is not read correctly yet; export it in metres, or as STL"
+            ),
+        ));
+    }
+    Ok(())
 }
 
 fn load_stl(path: &Path) -> Result<Mesh, SceneError> {
@@ -323,6 +384,71 @@ fn load_ply(path: &Path) -> Result<Mesh, SceneError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A COLLADA triangle placed by a node (translated, turned 90° about
+    /// z) comes out where the closed form puts it; in millimetres
+    /// (`<unit meter="0.001">`) it is scaled, and refused where its node
+    /// would move it (see `check_collada_units`).
+    #[test]
+    fn collada_nodes_and_units_apply() {
+        let dir = tempfile::tempdir().unwrap();
+        let dae = |unit: &str, translate: &str| {
+            format!(
+                r##"<?xml version="1.0" encoding="utf-8"?>
+<COLLADA xmlns="http://www.collada.org/2005/11/COLLADASchema" version="1.4.1">
+  <asset><unit meter="{unit}"/><up_axis>Z_UP</up_axis></asset>
+  <library_geometries>
+    <geometry id="tri"><mesh>
+      <source id="tri-pos"><float_array id="tri-pos-array" count="9">0 0 0 20 0 0 0 30 0</float_array>
+        <technique_common><accessor source="#tri-pos-array" count="3" stride="3">
+          <param name="X" type="float"/><param name="Y" type="float"/><param name="Z" type="float"/>
+        </accessor></technique_common></source>
+      <vertices id="tri-vtx"><input semantic="POSITION" source="#tri-pos"/></vertices>
+      <triangles count="1"><input semantic="VERTEX" source="#tri-vtx" offset="0"/><p>0 1 2</p></triangles>
+    </mesh></geometry>
+  </library_geometries>
+  <library_visual_scenes><visual_scene id="scene">
+    <node id="n"><translate>{translate}</translate><rotate>0 0 1 90</rotate><instance_geometry url="#tri"/></node>
+  </visual_scene></library_visual_scenes>
+  <scene><instance_visual_scene url="#scene"/></scene>
+</COLLADA>"##
+            )
+        };
+        let path = dir.path().join("tri.dae");
+        let check = |m: &Mesh, want: [[f32; 2]; 3]| {
+            assert_eq!(m.triangles.len(), 1);
+            for (p, w) in m.positions.iter().zip(want) {
+                assert!(
+                    (p.x - w[0]).abs() < 1e-5 && (p.y - w[1]).abs() < 1e-5 && p.z.abs() < 1e-6,
+                    "{p:?} vs {w:?}"
+                );
+            }
+        };
+        // Metres: (x, y) -> (10 - y, x).
+        std::fs::write(&path, dae("1", "10 0 0")).unwrap();
+        check(
+            &load_mesh(&path).unwrap(),
+            [[10.0, 0.0], [10.0, 20.0], [-20.0, 0.0]],
+        );
+        // Millimetres, turned in place: (x, y) -> (-y, x) / 1000.
+        std::fs::write(&path, dae("0.001", "0 0 0")).unwrap();
+        check(
+            &load_mesh(&path).unwrap(),
+            [[0.0, 0.0], [0.0, 0.020], [-0.030, 0.0]],
+        );
+        std::fs::write(&path, dae("0.001", "10 0 0")).unwrap();
+        let e = load_mesh(&path).unwrap_err().to_string();
+        assert!(
+            e.contains("tri.dae") && e.contains("units of 0.001 m"),
+            "{e}"
+        );
+        std::fs::write(&path, "<COLLADA><library_geometries>").unwrap();
+        let e = load_mesh(&path).unwrap_err().to_string();
+        assert!(
+            e.contains("tri.dae") && e.contains("not a readable COLLADA file"),
+            "{e}"
+        );
+    }
 
     #[test]
     fn stl_binary_ascii_and_errors() {

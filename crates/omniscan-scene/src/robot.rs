@@ -168,17 +168,6 @@ fn visual_mesh(visual: &urdf_rs::Visual, urdf: &Path, colour: [f32; 3]) -> Resul
     let (mut mesh, scale) = match &visual.geometry {
         urdf_rs::Geometry::Mesh { filename, scale } => {
             let path = resolve(filename, urdf)?;
-            let ext = path
-                .extension()
-                .and_then(|e| e.to_str())
-                .unwrap_or("")
-                .to_ascii_lowercase();
-            if ext == "dae" {
-                return Err(format!(
-                    "{}: COLLADA (.dae) meshes are not read yet; convert it to STL or OBJ",
-                    path.display()
-                ));
-            }
             let mut mesh = crate::loaders::load_mesh(&path).map_err(|e| e.to_string())?;
             mesh.materials = vec![material];
             mesh.triangle_materials = vec![0; mesh.triangles.len()];
