@@ -135,6 +135,14 @@ fn a_prismatic_hands_opening_is_its_joint_travel() {
         robot.max_opening_m()
     );
     assert!((robot.joint_share(0.04) - 0.5).abs() < 1e-6);
+    // From a recorded joint position (joint_states) back to the opening.
+    assert!((robot.opening_at("finger_a_joint", 0.015).unwrap() - 0.04).abs() < 1e-6);
+    assert!((robot.opening_at("finger_a_joint", 0.5).unwrap() - 0.07).abs() < 1e-6);
+    assert_eq!(
+        robot.opening_at("finger_b_joint", 0.01),
+        None,
+        "a mimic joint is not driven"
+    );
     assert_eq!(model.parts(0.04).len(), 3);
 }
 

@@ -36,11 +36,23 @@ pub fn import_ros2(
     progress: &dyn Progress,
 ) -> Result<ImportReport> {
     // The robot's gripper is loaded first: a capture that names a
-    // description the masks cannot use is not made.
-    let robot = settings.robot.spec();
-    if let Some(robot) = &robot {
-        omniscan_sim::gripper::GripperModel::from_robot(robot, Path::new("."))?;
-    }
+    // description the masks cannot use is not made. Its finger joints'
+    // positions become openings through the openings measured on it.
+    let gripper = match settings.robot.spec() {
+        Some(spec) => Some((
+            omniscan_sim::gripper::GripperModel::from_robot(&spec, Path::new("."))?,
+            spec,
+        )),
+        None => None,
+    };
+    let opening_m = |joint: &str, position: f64| {
+        let (model, _) = gripper.as_ref()?;
+        model.robot.as_ref()?.opening_at(joint, position)
+    };
+    let robot = gripper.as_ref().map(|(_, spec)| omniscan_ros::Robot {
+        spec: spec.clone(),
+        opening_m: &opening_m,
+    });
     progress.start("reading the bag", 0, "images");
     // The library's errors name the bag, topic, frame and time already.
     let report = omniscan_ros::import_ros2(bag, out, &settings.ros, robot.as_ref(), &|images| {

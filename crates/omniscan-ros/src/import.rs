@@ -194,14 +194,23 @@ impl Recording {
     }
 }
 
+/// Another robot than the YuMi: what the capture records, and the finger
+/// opening (metres) at a finger joint's position, `None` for a joint that
+/// is not one of the gripper's finger joints.
+pub struct Robot<'a> {
+    pub spec: RobotSpec,
+    pub opening_m: &'a dyn Fn(&str, f64) -> Option<f64>,
+}
+
 /// Imports the bag at `bag` into a new capture at `out` (which must not
-/// exist), recording `robot` as its gripper (the YuMi when `None`).
+/// exist), with `robot`'s gripper (the YuMi when `None`, its opening
+/// `--opening-m-per-joint-unit` times the joint's position).
 /// `progress(images)` is called as images are read.
 pub fn import_ros2(
     bag: &Path,
     out: &Path,
     settings: &Ros2ImportSettings,
-    robot: Option<&RobotSpec>,
+    robot: Option<&Robot>,
     progress: &dyn Fn(usize),
 ) -> Result<ImportReport, RosError> {
     let start = Instant::now();
@@ -223,8 +232,8 @@ pub fn import_ros2(
         .map_err(|e| CoreError::io(parent, e))?;
     let bag = Bag::open(bag)?;
     let recording = read_recording(&bag, staging.path(), settings, progress)?;
-    let (mut file, mut report) = assemble(&bag, &recording, settings)?;
-    file.robot = robot.cloned();
+    let (mut file, mut report) = assemble(&bag, &recording, settings, robot)?;
+    file.robot = robot.map(|r| r.spec.clone());
     for unused in unused_images(&recording, &file) {
         let path = staging.path().join(unused);
         std::fs::remove_file(&path).map_err(|e| CoreError::io(&path, e))?;
@@ -636,6 +645,7 @@ fn assemble(
     bag: &Bag,
     rec: &Recording,
     s: &Ros2ImportSettings,
+    robot: Option<&Robot>,
 ) -> Result<(CaptureFile, ImportReport), RosError> {
     let fail = |message: String| RosError::bag(&bag.path, message);
     let info = rec.camera_info.as_ref().expect("checked by read_recording");
@@ -717,11 +727,19 @@ fn assemble(
         }
         let gripper_to_world = lookup(gripper_frame(arm), image.stamp_ns)?;
         let depth = nearest(&rec.depths, image.stamp_ns, (s.depth_sync_s * 1e9) as i64);
-        let opening = rec
-            .joints
-            .get(finger_joint(arm))
-            .and_then(|series| joint_at(series, image.stamp_ns))
-            .map(|p| (p * s.opening_m_per_joint_unit).max(0.0));
+        let joint = finger_joint(arm);
+        let opening = match rec.joints.get(joint).and_then(|q| joint_at(q, image.stamp_ns)) {
+            None => None,
+            Some(p) => Some(match robot {
+                None => (p * s.opening_m_per_joint_unit).max(0.0),
+                Some(r) => (r.opening_m)(joint, p).ok_or_else(|| {
+                    fail(format!(
+                        "{joint} (the {arm} finger joint) is not a finger joint of {}'s gripper under {}",
+                        r.spec.description, r.spec.gripper_root
+                    ))
+                })?,
+            }),
+        };
         let frame = Frame {
             file_path: image.path.clone(),
             arm,

@@ -19,7 +19,7 @@ pub mod tf;
 
 use std::path::{Path, PathBuf};
 
-pub use import::{ImportReport, Ros2ImportSettings, import_ros2};
+pub use import::{ImportReport, Robot, Ros2ImportSettings, import_ros2};
 
 /// An error of the import, naming the bag and what in it is wrong.
 #[derive(Debug, thiserror::Error)]

@@ -500,17 +500,49 @@ fn camera_info_distortion_is_recorded_in_the_capture() {
         tcp_link: None,
         tcp_offset_m: Some([0.0, 0.0, 0.07]),
     };
+    // The robot's opening at a joint position replaces the linear default.
+    let opening_m =
+        |joint: &str, position: f64| joint.starts_with("gripper_").then_some(3.0 * position);
+    let robot = omniscan_ros::Robot {
+        spec: hand.clone(),
+        opening_m: &opening_m,
+    };
     import_ros2(
         &path,
         &out,
         &Ros2ImportSettings::default(),
-        Some(&hand),
+        Some(&robot),
         &|_| {},
     )
     .unwrap();
     let imported = Capture::load(&out).unwrap();
-    let robot = imported.file.robot.as_ref().unwrap();
-    assert_eq!(robot, &hand);
+    assert_eq!(imported.file.robot.as_ref().unwrap(), &hand);
+    for (a, b) in original.file.frames.iter().zip(&imported.file.frames) {
+        let (oa, ob) = (a.gripper_opening_m.unwrap(), b.gripper_opening_m.unwrap());
+        assert!((1.5 * oa - ob).abs() < 1e-12, "{oa} -> {ob}");
+    }
+    // A finger joint the robot's gripper does not have is named.
+    let none = |_: &str, _: f64| None;
+    let robot = omniscan_ros::Robot {
+        spec: hand,
+        opening_m: &none,
+    };
+    let again = tmp.path().join("again");
+    let e = import_ros2(
+        &path,
+        &again,
+        &Ros2ImportSettings::default(),
+        Some(&robot),
+        &|_| {},
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        e.contains(
+            "gripper_l_joint (the left finger joint) is not a finger joint of /robots/hand.urdf"
+        ),
+        "{e}"
+    );
     assert_eq!(
         imported.distortion(),
         Some(&Distortion::RadialTangential {

@@ -470,6 +470,23 @@ impl RobotGripper {
         1.0
     }
 
+    /// The opening, metres, with the finger joint `joint` (a driven one) at
+    /// `position`; `None` if `joint` is not one.
+    pub fn opening_at(&self, joint: &str, position: f64) -> Option<f64> {
+        let j = self.joints.iter().find(|j| j.actuated && j.name == joint)?;
+        let travel = j.upper - j.lower;
+        let s = if travel.abs() > 0.0 {
+            ((position - j.lower) / travel).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        let share = if self.open_at_upper { s } else { 1.0 - s };
+        let t = &self.openings;
+        let k = t.partition_point(|(s, _)| *s < share).clamp(1, t.len() - 1);
+        let ((s0, g0), (s1, g1)) = (t[k - 1], t[k]);
+        Some(g0 + (g1 - g0) * (share - s0) / (s1 - s0))
+    }
+
     /// Every link's geometry in the TCP frame with the fingers `opening_m` apart.
     pub fn placed(&self, opening_m: f64) -> Vec<(&Mesh, Isometry3<f64>)> {
         let poses = self.link_poses(self.joint_share(opening_m));
