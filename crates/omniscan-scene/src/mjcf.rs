@@ -100,6 +100,14 @@ fn numbers(text: &str, what: &str) -> Result<Vec<f64>, String> {
         .collect()
 }
 
+/// An `rgba` attribute's colour (its alpha is not drawn).
+fn colour(rgba: &str, what: &str) -> Result<[f32; 3], String> {
+    match numbers(rgba, what)?.as_slice() {
+        [r, g, b, _] => Ok([*r as f32, *g as f32, *b as f32]),
+        _ => Err(format!("{what}: rgba `{rgba}` needs four numbers")),
+    }
+}
+
 fn vec3(text: Option<&str>, what: &str, default: [f64; 3]) -> Result<Vector3<f64>, String> {
     match text {
         None => Ok(Vector3::from(default)),
@@ -170,10 +178,7 @@ impl<'a> Reader<'a> {
             return Ok(None);
         }
         let colour = match self.attr(node, class, "rgba") {
-            Some(rgba) => {
-                let v = numbers(rgba, &what)?;
-                [v[0] as f32, v[1] as f32, v[2] as f32]
-            }
+            Some(rgba) => colour(rgba, &what)?,
             None => self
                 .attr(node, class, "material")
                 .and_then(|m| self.materials.get(m).copied())
@@ -410,10 +415,8 @@ pub(crate) fn tree(text: &str, path: &Path, root: &str) -> Result<Tree, String> 
         }
         for m in asset.children().filter(|n| n.has_tag_name("material")) {
             if let (Some(name), Some(rgba)) = (m.attribute("name"), m.attribute("rgba")) {
-                let v = numbers(rgba, &format!("material {name}"))?;
-                reader
-                    .materials
-                    .insert(name.into(), [v[0] as f32, v[1] as f32, v[2] as f32]);
+                let c = colour(rgba, &format!("material {name}"))?;
+                reader.materials.insert(name.into(), c);
             }
         }
     }
@@ -528,5 +531,87 @@ fn mark_actuated(mujoco: Node, tree: &mut Tree) {
         j.actuated = j.motion != Motion::Fixed
             && j.mimic.is_none()
             && (driven.contains(&j.name.as_str()) || (!any && tree.closures.is_empty()));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use omniscan_core::capture::RobotSpec;
+
+    use crate::robot::RobotGripper;
+
+    /// A parallel hand in MJCF: two slide fingers (boxes, half-sizes as MJCF
+    /// gives them), the second coupled to the first by an equality, the
+    /// first driven by an actuator, the TCP a site; degrees by default.
+    fn hand(finger_rgba: &str, joint_type: &str) -> String {
+        format!(
+            r#"<mujoco model="hand">
+  <default><default class="finger"><joint type="{joint_type}" axis="1 0 0" range="0 0.03"/></default></default>
+  <worldbody>
+    <body name="palm" pos="1 2 3" axisangle="0 0 1 30">
+      <geom type="box" size="0.035 0.015 0.02" pos="0 0 0.02" rgba="0.2 0.2 0.2 1"/>
+      <geom type="box" size="0.1 0.1 0.1" group="3"/>
+      <site name="tcp" pos="0 0 0.08"/>
+      <body name="finger_a" pos="0 0 0.04" childclass="finger">
+        <joint name="a"/>
+        <geom type="box" size="0.004 0.01 0.025" pos="0.009 0 0.025" rgba="{finger_rgba}"/>
+      </body>
+      <body name="finger_b" pos="0 0 0.04" quat="0 0 0 1" childclass="finger">
+        <joint name="b"/>
+        <geom type="box" size="0.004 0.01 0.025" pos="0.009 0 0.025"/>
+      </body>
+    </body>
+  </worldbody>
+  <equality><joint joint1="b" joint2="a" polycoef="0 1 0 0 0"/></equality>
+  <actuator><position name="fingers" joint="a"/></actuator>
+</mujoco>"#
+        )
+    }
+
+    fn load(dir: &std::path::Path, text: &str, root: &str) -> Result<RobotGripper, String> {
+        let path = dir.join("hand.xml");
+        std::fs::write(&path, text).unwrap();
+        let spec = RobotSpec {
+            description: path.display().to_string(),
+            gripper_root: root.into(),
+            tcp_link: Some("tcp".into()),
+            tcp_offset_m: None,
+        };
+        RobotGripper::load(&spec, std::path::Path::new("/")).map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn an_mjcf_hand_opens_along_its_coupled_slides() {
+        let dir = tempfile::tempdir().unwrap();
+        let gripper = load(dir.path(), &hand("0.7 0.7 0.7 1", "slide"), "palm").unwrap();
+        // Inner faces at ±(5 mm + q): 10 mm closed, 70 mm at 30 mm of travel.
+        assert!(
+            (gripper.max_opening_m() - 0.07).abs() < 1e-6,
+            "{}",
+            gripper.max_opening_m()
+        );
+        assert!((gripper.opening_at("a", 0.01).unwrap() - 0.03).abs() < 1e-6);
+        assert_eq!(gripper.opening_at("b", 0.01), None, "b follows a");
+        // The collision box (group 3) is not drawn: palm, two fingers.
+        assert_eq!(gripper.placed(0.03).len(), 3);
+    }
+
+    #[test]
+    fn bad_mjcf_is_refused_by_name() {
+        let dir = tempfile::tempdir().unwrap();
+        let e = load(dir.path(), &hand("0.7 0.7", "slide"), "palm").unwrap_err();
+        assert!(
+            e.contains("hand.xml") && e.contains("rgba `0.7 0.7` needs four numbers"),
+            "{e}"
+        );
+        let e = load(dir.path(), &hand("0.7 0.7 0.7 1", "ball"), "palm").unwrap_err();
+        assert!(e.contains("joint a is a ball joint"), "{e}");
+        let e = load(dir.path(), &hand("0.7 0.7 0.7 1", "slide"), "wrist").unwrap_err();
+        assert!(
+            e.contains("no body `wrist`") && e.contains("palm, finger_a, finger_b"),
+            "{e}"
+        );
+        let e = load(dir.path(), "<mujoco><worldbody>", "palm").unwrap_err();
+        assert!(e.contains("not readable XML"), "{e}");
     }
 }
