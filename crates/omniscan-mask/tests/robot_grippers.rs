@@ -127,7 +127,7 @@ fn a_prismatic_hands_opening_is_its_joint_travel() {
     let urdf = prismatic_hand(tmp.path());
     let model =
         GripperModel::from_robot(&spec(&urdf, "palm", Some("tcp"), None), Path::new("/")).unwrap();
-    let robot = model.robot.as_ref().unwrap();
+    let robot = model.robot().unwrap();
     // Pads at ±(5 mm + q): 10 mm closed, 70 mm at the 30 mm limit.
     assert!(
         (robot.max_opening_m() - 0.07).abs() < 1e-6,
@@ -156,7 +156,7 @@ fn a_revolute_hands_opening_follows_its_hinges() {
         Path::new("/"),
     )
     .unwrap();
-    let robot = model.robot.as_ref().unwrap();
+    let robot = model.robot().unwrap();
     // The inner face x = -8 mm of a finger turned by θ about its hinge,
     // where it crosses the TCP's height h: z_l = (h - 0.008 sin θ) / cos θ,
     // x = 20 mm - 8 mm cos θ + z_l sin θ.

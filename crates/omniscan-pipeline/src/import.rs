@@ -47,7 +47,7 @@ pub fn import_ros2(
     };
     let opening_m = |joint: &str, position: f64| {
         let (model, _) = gripper.as_ref()?;
-        model.robot.as_ref()?.opening_at(joint, position)
+        model.robot()?.opening_at(joint, position)
     };
     let robot = gripper.as_ref().map(|(_, spec)| omniscan_ros::Robot {
         spec: spec.clone(),

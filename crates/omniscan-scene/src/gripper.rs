@@ -35,17 +35,27 @@ pub const MAX_OPENING_M: f64 = 0.050;
 /// Distance of the finger's contact face from its mount origin along x (finray_finger.stl).
 const PAD_OFFSET_M: f64 = 0.0007;
 
-/// The gripper's meshes in their own (URDF) frames: the YuMi's parts, or
-/// another robot's gripper from its URDF ([`crate::robot`]), whose meshes
-/// then stand in for all four.
+/// The robot's gripper: the YuMi's parts, or another robot's gripper from
+/// its description ([`crate::robot`]).
 #[derive(Debug, Clone)]
 pub struct GripperModel {
-    pub base: Mesh,
-    pub finger: Mesh,
-    pub wrist: Mesh,
-    pub forearm: Mesh,
     pub source: String,
-    pub robot: Option<Box<RobotGripper>>,
+    kind: GripperKind,
+}
+
+#[derive(Debug, Clone)]
+enum GripperKind {
+    Yumi(YumiParts),
+    Robot(Box<RobotGripper>),
+}
+
+/// The YuMi's meshes in their own (URDF) frames.
+#[derive(Debug, Clone)]
+struct YumiParts {
+    base: Mesh,
+    finger: Mesh,
+    wrist: Mesh,
+    forearm: Mesh,
 }
 
 /// A gripper part placed relative to the TCP frame.
@@ -71,12 +81,13 @@ impl GripperModel {
             Ok(mesh)
         };
         Ok(GripperModel {
-            base: load("gripper_base.stl", [0.82, 0.82, 0.80], 0.2)?,
-            finger: load("finray_finger.stl", [0.16, 0.16, 0.17], 0.1)?,
-            wrist: load("link_7.stl", [0.62, 0.62, 0.62], 0.25)?,
-            forearm: forearm_mesh(),
             source: dir.display().to_string(),
-            robot: None,
+            kind: GripperKind::Yumi(YumiParts {
+                base: load("gripper_base.stl", [0.82, 0.82, 0.80], 0.2)?,
+                finger: load("finray_finger.stl", [0.16, 0.16, 0.17], 0.1)?,
+                wrist: load("link_7.stl", [0.62, 0.62, 0.62], 0.25)?,
+                forearm: forearm_mesh(),
+            }),
         })
     }
 
@@ -84,20 +95,22 @@ impl GripperModel {
     pub fn from_robot(spec: &RobotSpec, base: &Path) -> Result<GripperModel, SceneError> {
         let robot = RobotGripper::load(spec, base)?;
         Ok(GripperModel {
-            base: Mesh::default(),
-            finger: Mesh::default(),
-            wrist: Mesh::default(),
-            forearm: Mesh::default(),
             source: format!("{} ({})", spec.description, spec.gripper_root),
-            robot: Some(Box::new(robot)),
+            kind: GripperKind::Robot(Box::new(robot)),
         })
+    }
+
+    /// Another robot's gripper; `None` for the YuMi.
+    pub fn robot(&self) -> Option<&RobotGripper> {
+        match &self.kind {
+            GripperKind::Robot(robot) => Some(robot),
+            GripperKind::Yumi(_) => None,
+        }
     }
 
     /// The widest opening between the pads, metres.
     pub fn max_opening_m(&self) -> f64 {
-        self.robot
-            .as_ref()
-            .map_or(MAX_OPENING_M, |r| r.max_opening_m())
+        self.robot().map_or(MAX_OPENING_M, |r| r.max_opening_m())
     }
 
     /// A built-in approximation of the YuMi gripper with the URDF's dimensions.
@@ -170,28 +183,32 @@ impl GripperModel {
         let mut wrist = wrist.finish();
         wrist.compute_normals();
         GripperModel {
-            base,
-            finger,
-            wrist,
-            forearm: forearm_mesh(),
             source: "builtin".into(),
-            robot: None,
+            kind: GripperKind::Yumi(YumiParts {
+                base,
+                finger,
+                wrist,
+                forearm: forearm_mesh(),
+            }),
         }
     }
 
     /// Where each part sits, relative to the TCP, for a given pad opening (metres).
     pub fn parts(&self, opening: f64) -> Vec<PlacedPart<'_>> {
-        if let Some(robot) = &self.robot {
-            return robot
-                .placed(opening)
-                .into_iter()
-                .map(|(mesh, tcp_to_part)| PlacedPart {
-                    mesh,
-                    tcp_to_part,
-                    is_arm: false,
-                })
-                .collect();
-        }
+        let yumi = match &self.kind {
+            GripperKind::Yumi(parts) => parts,
+            GripperKind::Robot(robot) => {
+                return robot
+                    .placed(opening)
+                    .into_iter()
+                    .map(|(mesh, tcp_to_part)| PlacedPart {
+                        mesh,
+                        tcp_to_part,
+                        is_arm: false,
+                    })
+                    .collect();
+            }
+        };
         let q = (0.5 * opening).clamp(0.0, 0.5 * MAX_OPENING_M + 0.01);
         let tcp_to_base = Isometry3::translation(0.0, 0.0, -TCP_FROM_BASE_M);
         let half_turn = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), std::f64::consts::PI);
@@ -208,27 +225,27 @@ impl GripperModel {
         let wrist = Isometry3::from_parts(Translation3::new(0.0, 0.0, -0.007), half_turn);
         vec![
             PlacedPart {
-                mesh: &self.base,
+                mesh: &yumi.base,
                 tcp_to_part: tcp_to_base,
                 is_arm: false,
             },
             PlacedPart {
-                mesh: &self.finger,
+                mesh: &yumi.finger,
                 tcp_to_part: tcp_to_base * finger_r,
                 is_arm: false,
             },
             PlacedPart {
-                mesh: &self.finger,
+                mesh: &yumi.finger,
                 tcp_to_part: tcp_to_base * finger_l,
                 is_arm: false,
             },
             PlacedPart {
-                mesh: &self.wrist,
+                mesh: &yumi.wrist,
                 tcp_to_part: tcp_to_base * wrist,
                 is_arm: false,
             },
             PlacedPart {
-                mesh: &self.forearm,
+                mesh: &yumi.forearm,
                 tcp_to_part: tcp_to_base * Isometry3::translation(0.0, 0.0, -0.038),
                 is_arm: true,
             },

@@ -160,10 +160,12 @@ fn load_obj(path: &Path) -> Result<Mesh, SceneError> {
 }
 
 fn load_collada(path: &Path) -> Result<Mesh, SceneError> {
-    check_collada_units(path)?;
+    let bytes =
+        std::fs::read(path).map_err(|e| SceneError::Core(omniscan_core::CoreError::io(path, e)))?;
+    check_collada_units(path, &bytes)?;
     let scene = mesh_loader::Loader::default()
         .merge_meshes(true)
-        .load_collada(path)
+        .load_collada_from_slice(&bytes, path)
         .map_err(|e| SceneError::mesh(path, format!("not a readable COLLADA file: {e}")))?;
     let mut mesh = Mesh::default();
     for part in &scene.meshes {
@@ -180,10 +182,10 @@ fn load_collada(path: &Path) -> Result<Mesh, SceneError> {
 /// but not its nodes' translations: a file in millimetres whose parts are
 /// moved by their nodes would come out with the parts misplaced, so it is
 /// refused here rather than drawn wrong.
-fn check_collada_units(path: &Path) -> Result<(), SceneError> {
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| SceneError::Core(omniscan_core::CoreError::io(path, e)))?;
-    let doc = roxmltree::Document::parse(&text)
+fn check_collada_units(path: &Path, bytes: &[u8]) -> Result<(), SceneError> {
+    let text = std::str::from_utf8(bytes)
+        .map_err(|e| SceneError::mesh(path, format!("not a readable COLLADA file: {e}")))?;
+    let doc = roxmltree::Document::parse(text)
         .map_err(|e| SceneError::mesh(path, format!("not a readable COLLADA file: {e}")))?;
     let unit: f64 = doc
         .descendants()

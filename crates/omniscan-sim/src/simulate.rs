@@ -688,7 +688,7 @@ impl Simulation {
         extra.insert("defect".into(), serde_json::to_value(&self.defect).unwrap());
         extra.insert(
             "gripper".into(),
-            serde_json::json!({ "model": self.gripper.source, "tcp_from_base_m": self.gripper.robot.is_none().then_some(TCP_FROM_BASE_M), "max_opening_m": self.gripper.max_opening_m() }),
+            serde_json::json!({ "model": self.gripper.source, "tcp_from_base_m": self.gripper.robot().is_none().then_some(TCP_FROM_BASE_M), "max_opening_m": self.gripper.max_opening_m() }),
         );
         extra.insert(
             "masks".into(),
