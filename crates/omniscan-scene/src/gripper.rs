@@ -45,7 +45,7 @@ pub struct GripperModel {
 
 #[derive(Debug, Clone)]
 enum GripperKind {
-    Yumi(YumiParts),
+    Yumi(Box<YumiParts>),
     Robot(Box<RobotGripper>),
 }
 
@@ -82,12 +82,12 @@ impl GripperModel {
         };
         Ok(GripperModel {
             source: dir.display().to_string(),
-            kind: GripperKind::Yumi(YumiParts {
+            kind: GripperKind::Yumi(Box::new(YumiParts {
                 base: load("gripper_base.stl", [0.82, 0.82, 0.80], 0.2)?,
                 finger: load("finray_finger.stl", [0.16, 0.16, 0.17], 0.1)?,
                 wrist: load("link_7.stl", [0.62, 0.62, 0.62], 0.25)?,
                 forearm: forearm_mesh(),
-            }),
+            })),
         })
     }
 
@@ -184,12 +184,12 @@ impl GripperModel {
         wrist.compute_normals();
         GripperModel {
             source: "builtin".into(),
-            kind: GripperKind::Yumi(YumiParts {
+            kind: GripperKind::Yumi(Box::new(YumiParts {
                 base,
                 finger,
                 wrist,
                 forearm: forearm_mesh(),
-            }),
+            })),
         }
     }
 
