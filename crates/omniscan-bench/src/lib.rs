@@ -7,6 +7,7 @@ mod formats;
 mod inspect;
 mod mask;
 mod mesh;
+mod poses;
 mod registration;
 mod scans;
 mod sim;
@@ -34,6 +35,8 @@ pub enum BenchCommand {
     Mesh(mesh::BenchArgs),
     /// Time a full simulated capture: both arms' trajectories plus the empty pass.
     Sim(sim::BenchArgs),
+    /// Pose refinement against simulated calibration error: one arm trained on exact, noisy and refined noisy poses; held-out PSNR and the corrections against the truth.
+    Poses(poses::BenchArgs),
 }
 
 /// Runs one benchmark; it prints its own figures.
@@ -47,6 +50,7 @@ pub fn run(command: BenchCommand) -> Result<()> {
         BenchCommand::Sim(args) => sim::bench(args),
         BenchCommand::Formats(args) => formats::bench(args),
         BenchCommand::Mesh(args) => mesh::bench(args),
+        BenchCommand::Poses(args) => poses::bench(args),
     }
 }
 

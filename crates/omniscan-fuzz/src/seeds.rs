@@ -319,6 +319,7 @@ fn checkpoint(dir: &Path) -> Result<Vec<u8>> {
         order: vec![1, 0],
         rng_word_pos: 42,
         fingerprint: "fuzz".into(),
+        poses: None,
     };
     let path = dir.join("seed.safetensors");
     omniscan_splat::checkpoint::save(&state, &path)?;

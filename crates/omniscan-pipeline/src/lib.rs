@@ -48,6 +48,7 @@ pub mod import;
 pub mod inspect;
 pub mod mask;
 pub mod memory;
+pub mod pose_refinement;
 pub mod progress;
 pub mod render;
 pub mod reports;

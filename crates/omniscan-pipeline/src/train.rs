@@ -19,10 +19,11 @@ use omniscan_splat::raster::Appearance;
 use omniscan_splat::train::{
     Densification, Start, TrainConfig, initial_splats, splats_from_points,
 };
-use omniscan_splat::trainer::{Checkpoints, train_resumable};
+use omniscan_splat::trainer::{Checkpoints, Trainer, run_to_end};
 use omniscan_splat::views::{ViewSource, split_held_out_from};
 
 use crate::Progress;
+use crate::pose_refinement::{PoseReport, PoseSettings, Split, view_groups};
 use crate::settings::default_from_flags;
 use crate::views::{ArmSet, Merge, view_source};
 
@@ -132,6 +133,9 @@ pub struct TrainSettings {
     /// On a GPU: how much of the views' loss targets (20 bytes a pixel) stays on the device, gigabytes; a kept view is sent once, the others at each of their steps.
     #[arg(long, default_value_t = omniscan_splat::gpu::training::DEFAULT_VIEW_MEMORY as f64 / 1e9)]
     pub gpu_view_memory_gb: f64,
+    #[command(flatten)]
+    #[serde(flatten)]
+    pub poses: PoseSettings,
 }
 
 default_from_flags!(TrainSettings);
@@ -199,6 +203,10 @@ pub struct TrainReport {
     /// On the views it trained on: tells underfitting from poor
     /// generalisation (LPIPS left to the held-out views: it is the slow one).
     pub train: Evaluation,
+    /// With --refine-poses: the corrections learned, and the held-out views'
+    /// fitted ones (both evaluations above are at the corrected poses).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub poses: Option<PoseReport>,
 }
 
 /// The checkpoint beside an output model: `OUT.checkpoint.safetensors`.
@@ -259,8 +267,15 @@ pub fn train(
     };
     let (train_views, test_views) =
         split_held_out_from(all, settings.hold_out_every, settings.hold_out_first);
+    let (train_indices, test_indices) = split_held_out_from(
+        (0..source.len()).collect(),
+        settings.hold_out_every,
+        settings.hold_out_first,
+    );
+    let (groups, group_names) = view_groups(&source);
+    let train_groups: Vec<usize> = train_indices.iter().map(|&i| groups[i]).collect();
     let start = Instant::now();
-    let config = trainer_config(settings);
+    let config = trainer_config(settings)?;
     let renderer = training_renderer(settings, progress)?;
     // A nerfstudio set's own points (`ply_file_path`) start it, as in
     // nerfstudio, unless --init names others.
@@ -290,11 +305,10 @@ pub fn train(
     };
     progress.start("training", settings.steps as u64, "steps");
     let mut recent = Vec::new();
-    let model = train_resumable(
-        &train_views,
-        start_from,
-        &config,
-        &renderer,
+    let mut trainer = Trainer::new(&train_views, start_from, &config, &renderer)?
+        .with_pose_groups(&train_groups)?;
+    run_to_end(
+        &mut trainer,
         Some(Checkpoints {
             every: settings.checkpoint_every,
             save: &mut save,
@@ -313,6 +327,8 @@ pub fn train(
             progress.set(step as u64);
         },
     )?;
+    let learned = trainer.pose_corrections();
+    let model = trainer.finish()?;
     progress.finish();
     write_splats(out, &model)?;
     if checkpoint.is_file() {
@@ -320,6 +336,36 @@ pub fn train(
             .with_context(|| format!("removing {}", checkpoint.display()))?;
     }
     let lpips = load_lpips(settings.lpips.as_deref(), settings.onnx_runtime.as_deref())?;
+    // With pose refinement every view is scored at its corrected pose, a
+    // held-out view's fitted against the model first.
+    let (train_views, test_views, poses) = match learned {
+        None => (train_views, test_views, None),
+        Some(learned) => {
+            let test_groups: Vec<usize> = test_indices.iter().map(|&i| groups[i]).collect();
+            let fitted = crate::pose_refinement::fit_held_out(
+                &model,
+                &test_views,
+                &test_groups,
+                &learned,
+                &config,
+                settings.poses.pose_fit_steps,
+                progress,
+            )?;
+            let split = Split {
+                train: &train_indices,
+                held_out: &test_indices,
+                groups: &groups,
+                group_names: &group_names,
+            };
+            let report = crate::pose_refinement::report(&source, &split, &learned, &fitted);
+            use crate::pose_refinement::corrected_views;
+            (
+                corrected_views(&train_views, &train_groups, &learned.views, &learned),
+                corrected_views(&test_views, &test_groups, &fitted, &learned),
+                Some(report),
+            )
+        }
+    };
     let test = omniscan_splat::evaluation::evaluate(&model, &test_views, lpips.as_ref())?;
     // The same figures on the views it trained on tell underfitting from
     // poor generalisation: on DTU scan37 after 3000 steps the held-out views'
@@ -336,6 +382,7 @@ pub fn train(
         settings: trained_with(settings, &config, &model, &init, merged_by),
         test,
         train: fit,
+        poses,
     })
 }
 
@@ -388,7 +435,7 @@ fn validate(settings: &TrainSettings) -> Result<()> {
 
 /// The trainer's configuration: the densification strategy's own defaults,
 /// with the settings' choices over them.
-fn trainer_config(settings: &TrainSettings) -> TrainConfig {
+fn trainer_config(settings: &TrainSettings) -> Result<TrainConfig> {
     let strategy = match settings.densification {
         DensificationChoice::Adaptive => TrainConfig::with_steps(settings.steps),
         DensificationChoice::Mcmc => TrainConfig::mcmc(settings.steps),
@@ -398,21 +445,29 @@ fn trainer_config(settings: &TrainSettings) -> TrainConfig {
     } else {
         strategy
     };
-    TrainConfig {
+    Ok(TrainConfig {
         seed: settings.seed,
         max_sh_degree: settings.sh_degree,
         max_splats: settings.max_splats,
         position_lr: settings.position_lr,
         sh_rest_lr: settings.sh_rest_lr,
         grad_threshold: settings.grad_threshold.unwrap_or(strategy.grad_threshold),
+        pose: settings.poses.config()?,
         ..strategy
-    }
+    })
 }
 
 /// The renderer the settings ask for; `auto` falls back to the CPU on a
 /// GPU that can render but not train.
 fn training_renderer(settings: &TrainSettings, progress: &dyn Progress) -> Result<Renderer> {
     let mut renderer = match Renderer::new(settings.backend)? {
+        Renderer::Gpu(gpu) if settings.backend == Backend::Auto && settings.poses.refine_poses => {
+            progress.note(&format!(
+                "pose refinement runs on the CPU only; training on the CPU rather than {}",
+                gpu.adapter()
+            ));
+            Renderer::Cpu
+        }
         Renderer::Gpu(gpu) if settings.backend == Backend::Auto && !gpu.can_train() => {
             progress.note(&format!(
                 "{} cannot run the backward pass (no subgroup operations); training on the CPU",

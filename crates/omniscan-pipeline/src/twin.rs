@@ -63,6 +63,10 @@ pub struct TwinSettings {
     /// Train and align a simulated capture that has no masks of its own on the simulator's ground-truth masks (for experiments on training alone; the reports say so). Without it a capture needs `omniscan mask` first.
     #[arg(long)]
     pub use_ground_truth_masks: bool,
+    /// Pose refinement in each of the three trainings (`train --refine-poses`).
+    #[command(flatten)]
+    #[serde(flatten)]
+    pub poses: crate::pose_refinement::PoseSettings,
 }
 
 default_from_flags!(TwinSettings);
@@ -342,6 +346,7 @@ fn train_stage(
         gpu_view_memory_gb: twin.gpu_view_memory_gb,
         use_ground_truth_masks: twin.use_ground_truth_masks,
         appearance: AppearanceChoice::FixedRig,
+        poses: twin.poses.clone(),
         ..TrainSettings::default()
     };
     let mut inputs = vec![capture_file];

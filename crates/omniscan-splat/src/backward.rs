@@ -29,6 +29,18 @@ use crate::raster::{
 };
 use crate::sh;
 
+/// The loss's gradient with respect to a small motion of the camera,
+/// `u ↦ u + ω × u + v` on every point `u` in the camera's frame (OpenCV
+/// axes): the world-to-camera matrix left-multiplied by a twist. Pose
+/// refinement ([`crate::pose`]) carries it to its corrections.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct CameraGradient {
+    /// dL/dv, per metre.
+    pub translation: [f64; 3],
+    /// dL/dω, per radian.
+    pub rotation: [f64; 3],
+}
+
 /// Gradients with respect to the rasterizer's intermediates and the activated parameters.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Gradients<F> {
@@ -148,11 +160,24 @@ pub fn backward<F: Real>(
     d_alpha: &[F],
 ) -> Gradients<F> {
     let bins = bin_tiles(p, camera.width, camera.height);
+    backward_binned(g, camera, settings, p, &bins, d_rgb, d_alpha, true).0
+}
+
+/// [`backward`], and the gradient with respect to the camera's pose.
+pub fn backward_with_camera<F: Real>(
+    g: &Gaussians<F>,
+    camera: &Camera<F>,
+    settings: &Settings<F>,
+    p: &Projected<F>,
+    d_rgb: &[[F; 3]],
+    d_alpha: &[F],
+) -> (Gradients<F>, CameraGradient) {
+    let bins = bin_tiles(p, camera.width, camera.height);
     backward_binned(g, camera, settings, p, &bins, d_rgb, d_alpha, true)
 }
 
-/// [`backward`] with the forward pass's tile bins; `absolute`: whether to
-/// sum [`Gradients::means2d_abs`].
+/// [`backward_with_camera`] with the forward pass's tile bins; `absolute`:
+/// whether to sum [`Gradients::means2d_abs`].
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn backward_binned<F: Real>(
     g: &Gaussians<F>,
@@ -163,7 +188,7 @@ pub(crate) fn backward_binned<F: Real>(
     d_rgb: &[[F; 3]],
     d_alpha: &[F],
     absolute: bool,
-) -> Gradients<F> {
+) -> (Gradients<F>, CameraGradient) {
     let n = g.means.len();
     let (width, height) = (camera.width, camera.height);
     let TileBins { packed, tiles } = bins;
@@ -310,8 +335,8 @@ pub(crate) fn backward_binned<F: Real>(
             Colors::Sh { coeffs, .. } => filled(coeffs.len(), [F::zero(); 3]),
         },
     };
-    project_backward(g, camera, settings, p, &mut grads);
-    grads
+    let camera_gradient = project_backward(g, camera, settings, p, &mut grads);
+    (grads, camera_gradient)
 }
 
 fn mat3_mul<F: Real>(a: &[[F; 3]; 3], b: &[[F; 3]; 3]) -> [[F; 3]; 3] {
@@ -334,13 +359,16 @@ fn mat3_t<F: Real>(a: &[[F; 3]; 3]) -> [[F; 3]; 3] {
     o
 }
 
+/// The projection's backward pass, per splat; returns the camera's
+/// gradient, summed over the splats in index order (the same bits on any
+/// number of threads).
 fn project_backward<F: Real>(
     g: &Gaussians<F>,
     camera: &Camera<F>,
     settings: &Settings<F>,
     p: &Projected<F>,
     grads: &mut Gradients<F>,
-) {
+) -> CameraGradient {
     let ViewGeometry {
         rot,
         trans,
@@ -373,262 +401,322 @@ fn project_backward<F: Real>(
         .zip(scales.par_iter_mut())
         .zip(opacities.par_iter_mut())
         .zip(colors.par_chunks_mut(per_splat));
-    outputs.enumerate().for_each(
-        |(i, ((((d_mean_out, d_quat_out), d_scale_out), d_opacity_out), d_colors_out))| {
-            if !p.visible(i) {
-                return;
-            }
-            let m = g.means[i];
-            let pc = [0, 1, 2]
-                .map(|r| rot[r][0] * m[0] + rot[r][1] * m[1] + rot[r][2] * m[2] + trans[r]);
-            let (x, y, z) = (pc[0], pc[1], pc[2]);
-            // Opacity (and the antialiasing compensation).
-            let d_ov = opacities_view[i];
-            let (d_opacity, d_comp) = match settings.mode {
-                Mode::Classic => (d_ov, F::zero()),
-                Mode::Antialiased => (d_ov * p.compensations[i], d_ov * g.opacities[i]),
-            };
-            *d_opacity_out = d_opacity;
-            // Colour: through the clamp, to RGB or SH (and the SH view direction).
-            let mut d_pc = [F::zero(); 3];
-            let mut d_mean = [F::zero(); 3];
-            let mut d_rig_axis = [F::zero(); 3];
-            let mut rig_axis = None;
-            let r = quat_to_rotmat(g.quats[i]);
-            match &g.colors {
-                Colors::Rgb(_) => d_colors_out[0] = colors_view[i],
-                Colors::Sh { degree, coeffs } => {
-                    let k = sh::coefficients(*degree);
-                    let dvec = [m[0] - campos[0], m[1] - campos[1], m[2] - campos[2]];
-                    let len = (dvec[0] * dvec[0] + dvec[1] * dvec[1] + dvec[2] * dvec[2]).sqrt();
-                    let rig = match settings.appearance {
-                        Appearance::ViewDirection => None,
-                        Appearance::FixedRig => Some(rig_direction(&rot, &r, g.scales[i])),
-                    };
-                    let dir = rig.map_or_else(|| dvec.map(|t| t / len), |rig| rig.0);
-                    let raw = sh::evaluate(*degree, dir, &coeffs[i * k..(i + 1) * k]);
-                    let d_raw: [F; 3] = [0, 1, 2].map(|ch| {
-                        if raw[ch] + F::c(0.5) < F::zero() {
-                            F::zero()
-                        } else {
-                            colors_view[i][ch]
+    let per_splat_camera: Vec<[F; 6]> = outputs
+        .enumerate()
+        .map(
+            |(i, ((((d_mean_out, d_quat_out), d_scale_out), d_opacity_out), d_colors_out))| {
+                if !p.visible(i) {
+                    return [F::zero(); 6];
+                }
+                let m = g.means[i];
+                let pc = [0, 1, 2]
+                    .map(|r| rot[r][0] * m[0] + rot[r][1] * m[1] + rot[r][2] * m[2] + trans[r]);
+                let (x, y, z) = (pc[0], pc[1], pc[2]);
+                // Opacity (and the antialiasing compensation).
+                let d_ov = opacities_view[i];
+                let (d_opacity, d_comp) = match settings.mode {
+                    Mode::Classic => (d_ov, F::zero()),
+                    Mode::Antialiased => (d_ov * p.compensations[i], d_ov * g.opacities[i]),
+                };
+                *d_opacity_out = d_opacity;
+                // Colour: through the clamp, to RGB or SH (and the SH view direction).
+                let mut d_pc = [F::zero(); 3];
+                let mut d_mean = [F::zero(); 3];
+                let mut d_rig_axis = [F::zero(); 3];
+                let mut rig_axis = None;
+                // A fixed-rig direction turns with the camera: dL/dω = d × dL/dd.
+                let mut rig_turn = [F::zero(); 3];
+                let r = quat_to_rotmat(g.quats[i]);
+                match &g.colors {
+                    Colors::Rgb(_) => d_colors_out[0] = colors_view[i],
+                    Colors::Sh { degree, coeffs } => {
+                        let k = sh::coefficients(*degree);
+                        let dvec = [m[0] - campos[0], m[1] - campos[1], m[2] - campos[2]];
+                        let len =
+                            (dvec[0] * dvec[0] + dvec[1] * dvec[1] + dvec[2] * dvec[2]).sqrt();
+                        let rig = match settings.appearance {
+                            Appearance::ViewDirection => None,
+                            Appearance::FixedRig => Some(rig_direction(&rot, &r, g.scales[i])),
+                        };
+                        let dir = rig.map_or_else(|| dvec.map(|t| t / len), |rig| rig.0);
+                        let raw = sh::evaluate(*degree, dir, &coeffs[i * k..(i + 1) * k]);
+                        let d_raw: [F; 3] = [0, 1, 2].map(|ch| {
+                            if raw[ch] + F::c(0.5) < F::zero() {
+                                F::zero()
+                            } else {
+                                colors_view[i][ch]
+                            }
+                        });
+                        let basis = sh::basis(*degree, dir);
+                        for kk in 0..k {
+                            for ch in 0..3 {
+                                d_colors_out[kk][ch] = basis[kk] * d_raw[ch];
+                            }
                         }
-                    });
-                    let basis = sh::basis(*degree, dir);
-                    for kk in 0..k {
-                        for ch in 0..3 {
-                            d_colors_out[kk][ch] = basis[kk] * d_raw[ch];
-                        }
-                    }
-                    let dbasis = sh::basis_gradient(*degree, dir);
-                    let mut d_dir = [F::zero(); 3];
-                    for kk in 0..k {
-                        let s: F = (0..3).map(|ch| coeffs[i * k + kk][ch] * d_raw[ch]).sum();
-                        for a in 0..3 {
-                            d_dir[a] = d_dir[a] + dbasis[kk][a] * s;
-                        }
-                    }
-                    match rig {
-                        // Through the normalisation d = v/|v|.
-                        None => {
-                            let dot = d_dir[0] * dir[0] + d_dir[1] * dir[1] + d_dir[2] * dir[2];
+                        let dbasis = sh::basis_gradient(*degree, dir);
+                        let mut d_dir = [F::zero(); 3];
+                        for kk in 0..k {
+                            let s: F = (0..3).map(|ch| coeffs[i * k + kk][ch] * d_raw[ch]).sum();
                             for a in 0..3 {
-                                d_mean[a] = d_mean[a] + (d_dir[a] - dir[a] * dot) / len;
+                                d_dir[a] = d_dir[a] + dbasis[kk][a] * s;
                             }
                         }
-                        // d = sign · rot · r[:, axis]: into that column of
-                        // the splat's rotation (the axis choice and the sign
-                        // are piecewise constant).
-                        Some((_, axis, sign)) => {
-                            for (b, d_rb) in d_rig_axis.iter_mut().enumerate() {
-                                *d_rb = sign * (0..3).map(|a| rot[a][b] * d_dir[a]).sum::<F>();
+                        match rig {
+                            // Through the normalisation d = v/|v|.
+                            None => {
+                                let dot = d_dir[0] * dir[0] + d_dir[1] * dir[1] + d_dir[2] * dir[2];
+                                for a in 0..3 {
+                                    d_mean[a] = d_mean[a] + (d_dir[a] - dir[a] * dot) / len;
+                                }
                             }
-                            rig_axis = Some(axis);
+                            // d = sign · rot · r[:, axis]: into that column of
+                            // the splat's rotation (the axis choice and the sign
+                            // are piecewise constant).
+                            Some((_, axis, sign)) => {
+                                rig_turn = cross(dir, d_dir);
+                                for (b, d_rb) in d_rig_axis.iter_mut().enumerate() {
+                                    *d_rb = sign * (0..3).map(|a| rot[a][b] * d_dir[a]).sum::<F>();
+                                }
+                                rig_axis = Some(axis);
+                            }
                         }
                     }
                 }
-            }
-            // Recompute the forward quantities this Gaussian needs.
-            let cov_w = covariance(&r, g.scales[i]);
-            let cov_c = mat3_mul(&mat3_mul(&rot, &cov_w), &mat3_t(&rot));
-            let (rx, ry) = (x / z, y / z);
-            let clamped_x = rx < -lim_x_neg || rx > lim_x_pos;
-            let clamped_y = ry < -lim_y_neg || ry > lim_y_pos;
-            let tx = z * rx.max(-lim_x_neg).min(lim_x_pos);
-            let ty = z * ry.max(-lim_y_neg).min(lim_y_pos);
-            let j = [
-                [fx / z, F::zero(), -fx * tx / (z * z)],
-                [F::zero(), fy / z, -fy * ty / (z * z)],
-            ];
-            let mut cov2 = [[F::zero(); 2]; 2];
-            for r in 0..2 {
-                for c in 0..2 {
-                    let mut s = F::zero();
-                    for a in 0..3 {
-                        for b in 0..3 {
-                            s = s + j[r][a] * cov_c[a][b] * j[c][b];
+                // Recompute the forward quantities this Gaussian needs.
+                let cov_w = covariance(&r, g.scales[i]);
+                let cov_c = mat3_mul(&mat3_mul(&rot, &cov_w), &mat3_t(&rot));
+                let (rx, ry) = (x / z, y / z);
+                let clamped_x = rx < -lim_x_neg || rx > lim_x_pos;
+                let clamped_y = ry < -lim_y_neg || ry > lim_y_pos;
+                let tx = z * rx.max(-lim_x_neg).min(lim_x_pos);
+                let ty = z * ry.max(-lim_y_neg).min(lim_y_pos);
+                let j = [
+                    [fx / z, F::zero(), -fx * tx / (z * z)],
+                    [F::zero(), fy / z, -fy * ty / (z * z)],
+                ];
+                let mut cov2 = [[F::zero(); 2]; 2];
+                for r in 0..2 {
+                    for c in 0..2 {
+                        let mut s = F::zero();
+                        for a in 0..3 {
+                            for b in 0..3 {
+                                s = s + j[r][a] * cov_c[a][b] * j[c][b];
+                            }
                         }
-                    }
-                    cov2[r][c] = s;
-                }
-            }
-            let (a, b, c) = (
-                cov2[0][0] + settings.eps2d,
-                (cov2[0][1] + cov2[1][0]) * F::c(0.5),
-                cov2[1][1] + settings.eps2d,
-            );
-            let det = a * c - b * b;
-            // Conic = inverse of [[a, b], [b, c]]; dL/dCov = −Inv·G·Inv with G symmetric.
-            let inv = [[c / det, -b / det], [-b / det, a / det]];
-            let dc = conics[i];
-            let gm = [[dc[0], dc[1] * F::c(0.5)], [dc[1] * F::c(0.5), dc[2]]];
-            let mut d_cov2 = [[F::zero(); 2]; 2];
-            for r in 0..2 {
-                for s in 0..2 {
-                    let mut acc = F::zero();
-                    for u in 0..2 {
-                        for t in 0..2 {
-                            acc = acc + inv[r][u] * gm[u][t] * inv[t][s];
-                        }
-                    }
-                    d_cov2[r][s] = -acc;
-                }
-            }
-            if settings.mode == Mode::Antialiased && d_comp != F::zero() {
-                // comp = sqrt(det(cov) / det(cov + εI)); d comp/d cov = comp/2 · (cov⁻¹ − (cov + εI)⁻¹).
-                let det_raw = cov2[0][0] * cov2[1][1] - cov2[0][1] * cov2[1][0];
-                let comp = p.compensations[i];
-                if det_raw > F::zero() && comp > F::zero() {
-                    let inv_raw = [
-                        [cov2[1][1] / det_raw, -cov2[0][1] / det_raw],
-                        [-cov2[1][0] / det_raw, cov2[0][0] / det_raw],
-                    ];
-                    for r in 0..2 {
-                        for s in 0..2 {
-                            d_cov2[r][s] = d_cov2[r][s]
-                                + d_comp * comp * F::c(0.5) * (inv_raw[r][s] - inv[r][s]);
-                        }
+                        cov2[r][c] = s;
                     }
                 }
-            }
-            // Mean: means2d = (fx x/z + cx, fy y/z + cy).
-            let dm2 = means2d[i];
-            d_pc[0] = d_pc[0] + dm2[0] * fx / z;
-            d_pc[1] = d_pc[1] + dm2[1] * fy / z;
-            d_pc[2] = d_pc[2] - dm2[0] * fx * x / (z * z) - dm2[1] * fy * y / (z * z);
-            // cov2 = J Σc Jᵀ: dΣc = Jᵀ G J, dJ = (G + Gᵀ) J Σc.
-            let mut d_cov_c = [[F::zero(); 3]; 3];
-            for a in 0..3 {
-                for b in 0..3 {
-                    let mut s = F::zero();
-                    for r in 0..2 {
-                        for t in 0..2 {
-                            s = s + j[r][a] * d_cov2[r][t] * j[t][b];
+                let (a, b, c) = (
+                    cov2[0][0] + settings.eps2d,
+                    (cov2[0][1] + cov2[1][0]) * F::c(0.5),
+                    cov2[1][1] + settings.eps2d,
+                );
+                let det = a * c - b * b;
+                // Conic = inverse of [[a, b], [b, c]]; dL/dCov = −Inv·G·Inv with G symmetric.
+                let inv = [[c / det, -b / det], [-b / det, a / det]];
+                let dc = conics[i];
+                let gm = [[dc[0], dc[1] * F::c(0.5)], [dc[1] * F::c(0.5), dc[2]]];
+                let mut d_cov2 = [[F::zero(); 2]; 2];
+                for r in 0..2 {
+                    for s in 0..2 {
+                        let mut acc = F::zero();
+                        for u in 0..2 {
+                            for t in 0..2 {
+                                acc = acc + inv[r][u] * gm[u][t] * inv[t][s];
+                            }
+                        }
+                        d_cov2[r][s] = -acc;
+                    }
+                }
+                if settings.mode == Mode::Antialiased && d_comp != F::zero() {
+                    // comp = sqrt(det(cov) / det(cov + εI)); d comp/d cov = comp/2 · (cov⁻¹ − (cov + εI)⁻¹).
+                    let det_raw = cov2[0][0] * cov2[1][1] - cov2[0][1] * cov2[1][0];
+                    let comp = p.compensations[i];
+                    if det_raw > F::zero() && comp > F::zero() {
+                        let inv_raw = [
+                            [cov2[1][1] / det_raw, -cov2[0][1] / det_raw],
+                            [-cov2[1][0] / det_raw, cov2[0][0] / det_raw],
+                        ];
+                        for r in 0..2 {
+                            for s in 0..2 {
+                                d_cov2[r][s] = d_cov2[r][s]
+                                    + d_comp * comp * F::c(0.5) * (inv_raw[r][s] - inv[r][s]);
+                            }
                         }
                     }
-                    d_cov_c[a][b] = s;
                 }
-            }
-            let mut d_j = [[F::zero(); 3]; 2];
-            for r in 0..2 {
-                for a in 0..3 {
-                    let mut s = F::zero();
-                    for t in 0..2 {
-                        for b in 0..3 {
-                            s = s + (d_cov2[r][t] + d_cov2[t][r]) * j[t][b] * cov_c[b][a];
-                        }
-                    }
-                    d_j[r][a] = s;
-                }
-            }
-            // J's dependence on the camera-space mean (the clamp freezes x/z or y/z).
-            let z2 = z * z;
-            let z3 = z2 * z;
-            d_pc[2] = d_pc[2] - d_j[0][0] * fx / z2 - d_j[1][1] * fy / z2;
-            if clamped_x {
-                d_pc[2] = d_pc[2] + d_j[0][2] * fx * (tx / z) / z2;
-            } else {
-                d_pc[0] = d_pc[0] - d_j[0][2] * fx / z2;
-                d_pc[2] = d_pc[2] + d_j[0][2] * two * fx * tx / z3;
-            }
-            if clamped_y {
-                d_pc[2] = d_pc[2] + d_j[1][2] * fy * (ty / z) / z2;
-            } else {
-                d_pc[1] = d_pc[1] - d_j[1][2] * fy / z2;
-                d_pc[2] = d_pc[2] + d_j[1][2] * two * fy * ty / z3;
-            }
-            // Camera to world: mean through Rᵀ, covariance as Rᵀ dΣc R.
-            for a in 0..3 {
-                d_mean[a] =
-                    d_mean[a] + rot[0][a] * d_pc[0] + rot[1][a] * d_pc[1] + rot[2][a] * d_pc[2];
-            }
-            *d_mean_out = d_mean;
-            let d_cov_w = mat3_mul(&mat3_mul(&mat3_t(&rot), &d_cov_c), &rot);
-            // Σ = M Mᵀ, M = R S.
-            let s = g.scales[i];
-            let mut mm = r;
-            for row in &mut mm {
-                for (jj, val) in row.iter_mut().enumerate() {
-                    *val = *val * s[jj];
-                }
-            }
-            let sym = {
-                let mut o = [[F::zero(); 3]; 3];
+                // Mean: means2d = (fx x/z + cx, fy y/z + cy).
+                let dm2 = means2d[i];
+                d_pc[0] = d_pc[0] + dm2[0] * fx / z;
+                d_pc[1] = d_pc[1] + dm2[1] * fy / z;
+                d_pc[2] = d_pc[2] - dm2[0] * fx * x / (z * z) - dm2[1] * fy * y / (z * z);
+                // cov2 = J Σc Jᵀ: dΣc = Jᵀ G J, dJ = (G + Gᵀ) J Σc.
+                let mut d_cov_c = [[F::zero(); 3]; 3];
                 for a in 0..3 {
                     for b in 0..3 {
-                        o[a][b] = d_cov_w[a][b] + d_cov_w[b][a];
+                        let mut s = F::zero();
+                        for r in 0..2 {
+                            for t in 0..2 {
+                                s = s + j[r][a] * d_cov2[r][t] * j[t][b];
+                            }
+                        }
+                        d_cov_c[a][b] = s;
                     }
                 }
-                o
-            };
-            let d_m = mat3_mul(&sym, &mm);
-            let mut d_r = [[F::zero(); 3]; 3];
-            for a in 0..3 {
-                for b in 0..3 {
-                    d_r[a][b] = d_m[a][b] * s[b];
-                    d_scale_out[b] = d_scale_out[b] + d_m[a][b] * r[a][b];
+                let mut d_j = [[F::zero(); 3]; 2];
+                for r in 0..2 {
+                    for a in 0..3 {
+                        let mut s = F::zero();
+                        for t in 0..2 {
+                            for b in 0..3 {
+                                s = s + (d_cov2[r][t] + d_cov2[t][r]) * j[t][b] * cov_c[b][a];
+                            }
+                        }
+                        d_j[r][a] = s;
+                    }
                 }
-            }
-            if let Some(axis) = rig_axis {
-                for (row, d) in d_r.iter_mut().zip(d_rig_axis) {
-                    row[axis] = row[axis] + d;
+                // J's dependence on the camera-space mean (the clamp freezes x/z or y/z).
+                let z2 = z * z;
+                let z3 = z2 * z;
+                d_pc[2] = d_pc[2] - d_j[0][0] * fx / z2 - d_j[1][1] * fy / z2;
+                if clamped_x {
+                    d_pc[2] = d_pc[2] + d_j[0][2] * fx * (tx / z) / z2;
+                } else {
+                    d_pc[0] = d_pc[0] - d_j[0][2] * fx / z2;
+                    d_pc[2] = d_pc[2] + d_j[0][2] * two * fx * tx / z3;
                 }
-            }
-            // Rotation matrix to the normalised quaternion, then through the normalisation.
-            let q = g.quats[i];
-            let norm = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
-            let [qw, qx, qy, qz] = q.map(|t| t / norm);
-            let gq = d_r;
-            let d_hat = [
-                two * (-qz * gq[0][1] + qy * gq[0][2] + qz * gq[1][0]
-                    - qx * gq[1][2]
-                    - qy * gq[2][0]
-                    + qx * gq[2][1]),
-                two * (qy * gq[0][1] + qz * gq[0][2] + qy * gq[1][0]
-                    - two * qx * gq[1][1]
-                    - qw * gq[1][2]
-                    + qz * gq[2][0]
-                    + qw * gq[2][1]
-                    - two * qx * gq[2][2]),
-                two * (-two * qy * gq[0][0]
-                    + qx * gq[0][1]
-                    + qw * gq[0][2]
-                    + qx * gq[1][0]
-                    + qz * gq[1][2]
-                    - qw * gq[2][0]
-                    + qz * gq[2][1]
-                    - two * qy * gq[2][2]),
-                two * (-two * qz * gq[0][0] - qw * gq[0][1] + qx * gq[0][2] + qw * gq[1][0]
-                    - two * qz * gq[1][1]
-                    + qy * gq[1][2]
-                    + qx * gq[2][0]
-                    + qy * gq[2][1]),
-            ];
-            let hat = [qw, qx, qy, qz];
-            let dot = (0..4).map(|k| d_hat[k] * hat[k]).sum::<F>();
-            *d_quat_out = [0, 1, 2, 3].map(|k| (d_hat[k] - hat[k] * dot) / norm);
-        },
-    );
+                if clamped_y {
+                    d_pc[2] = d_pc[2] + d_j[1][2] * fy * (ty / z) / z2;
+                } else {
+                    d_pc[1] = d_pc[1] - d_j[1][2] * fy / z2;
+                    d_pc[2] = d_pc[2] + d_j[1][2] * two * fy * ty / z3;
+                }
+                let camera_part =
+                    camera_contribution(&rot, pc, d_pc, d_mean, &cov_c, &d_cov_c, rig_turn);
+                // Camera to world: mean through Rᵀ, covariance as Rᵀ dΣc R.
+                for a in 0..3 {
+                    d_mean[a] =
+                        d_mean[a] + rot[0][a] * d_pc[0] + rot[1][a] * d_pc[1] + rot[2][a] * d_pc[2];
+                }
+                *d_mean_out = d_mean;
+                let d_cov_w = mat3_mul(&mat3_mul(&mat3_t(&rot), &d_cov_c), &rot);
+                // Σ = M Mᵀ, M = R S.
+                let s = g.scales[i];
+                let mut mm = r;
+                for row in &mut mm {
+                    for (jj, val) in row.iter_mut().enumerate() {
+                        *val = *val * s[jj];
+                    }
+                }
+                let sym = {
+                    let mut o = [[F::zero(); 3]; 3];
+                    for a in 0..3 {
+                        for b in 0..3 {
+                            o[a][b] = d_cov_w[a][b] + d_cov_w[b][a];
+                        }
+                    }
+                    o
+                };
+                let d_m = mat3_mul(&sym, &mm);
+                let mut d_r = [[F::zero(); 3]; 3];
+                for a in 0..3 {
+                    for b in 0..3 {
+                        d_r[a][b] = d_m[a][b] * s[b];
+                        d_scale_out[b] = d_scale_out[b] + d_m[a][b] * r[a][b];
+                    }
+                }
+                if let Some(axis) = rig_axis {
+                    for (row, d) in d_r.iter_mut().zip(d_rig_axis) {
+                        row[axis] = row[axis] + d;
+                    }
+                }
+                // Rotation matrix to the normalised quaternion, then through the normalisation.
+                let q = g.quats[i];
+                let norm = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
+                let [qw, qx, qy, qz] = q.map(|t| t / norm);
+                let gq = d_r;
+                let d_hat = [
+                    two * (-qz * gq[0][1] + qy * gq[0][2] + qz * gq[1][0]
+                        - qx * gq[1][2]
+                        - qy * gq[2][0]
+                        + qx * gq[2][1]),
+                    two * (qy * gq[0][1] + qz * gq[0][2] + qy * gq[1][0]
+                        - two * qx * gq[1][1]
+                        - qw * gq[1][2]
+                        + qz * gq[2][0]
+                        + qw * gq[2][1]
+                        - two * qx * gq[2][2]),
+                    two * (-two * qy * gq[0][0]
+                        + qx * gq[0][1]
+                        + qw * gq[0][2]
+                        + qx * gq[1][0]
+                        + qz * gq[1][2]
+                        - qw * gq[2][0]
+                        + qz * gq[2][1]
+                        - two * qy * gq[2][2]),
+                    two * (-two * qz * gq[0][0] - qw * gq[0][1] + qx * gq[0][2] + qw * gq[1][0]
+                        - two * qz * gq[1][1]
+                        + qy * gq[1][2]
+                        + qx * gq[2][0]
+                        + qy * gq[2][1]),
+                ];
+                let hat = [qw, qx, qy, qz];
+                let dot = (0..4).map(|k| d_hat[k] * hat[k]).sum::<F>();
+                *d_quat_out = [0, 1, 2, 3].map(|k| (d_hat[k] - hat[k] * dot) / norm);
+                camera_part
+            },
+        )
+        .collect();
+    let mut total = CameraGradient::default();
+    for part in per_splat_camera {
+        for a in 0..3 {
+            total.translation[a] += part[a].to_f64().unwrap_or(f64::NAN);
+            total.rotation[a] += part[3 + a].to_f64().unwrap_or(f64::NAN);
+        }
+    }
+    total
+}
+
+fn cross<F: Real>(a: [F; 3], b: [F; 3]) -> [F; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+/// One splat's share of the camera's gradient ([`CameraGradient`], as
+/// translation then rotation). A camera-frame motion moves the splat's
+/// camera-frame mean `pc` (gradient `d_pc`) and, for a translation, the
+/// view direction as the world mean would (`d_view_dir`, the world-frame
+/// gradient the SH put on the mean); a rotation turns the camera-frame
+/// covariance, dΣc = ω̂Σc − Σcω̂, and a fixed-rig direction (`rig_turn`).
+fn camera_contribution<F: Real>(
+    rot: &[[F; 3]; 3],
+    pc: [F; 3],
+    d_pc: [F; 3],
+    d_view_dir: [F; 3],
+    cov_c: &[[F; 3]; 3],
+    d_cov_c: &[[F; 3]; 3],
+    rig_turn: [F; 3],
+) -> [F; 6] {
+    let translation =
+        [0, 1, 2].map(|a| d_pc[a] + (0..3).map(|b| rot[a][b] * d_view_dir[b]).sum::<F>());
+    // dL = tr(Gᵀ(ω̂Σ − Σω̂)) = tr(Aω̂) with A = ΣGᵀ − GᵀΣ.
+    let g_t = mat3_t(d_cov_c);
+    let (sg, gs) = (mat3_mul(cov_c, &g_t), mat3_mul(&g_t, cov_c));
+    let a = |r: usize, c: usize| sg[r][c] - gs[r][c];
+    let turn = cross(pc, d_pc);
+    let covariance_turn = [a(1, 2) - a(2, 1), a(2, 0) - a(0, 2), a(0, 1) - a(1, 0)];
+    let rotation = [0, 1, 2].map(|k| turn[k] + covariance_turn[k] + rig_turn[k]);
+    [
+        translation[0],
+        translation[1],
+        translation[2],
+        rotation[0],
+        rotation[1],
+        rotation[2],
+    ]
 }
 
 #[cfg(test)]
@@ -765,6 +853,58 @@ mod tests {
         edit(&mut minus, -h);
         (loss(&plus, camera, settings, w_rgb, w_a) - loss(&minus, camera, settings, w_rgb, w_a))
             / (2.0 * h)
+    }
+
+    /// The camera moved by `u ↦ u + ω × u + v` to first order: its
+    /// world-to-camera matrix left-multiplied by the exact rigid motion
+    /// (Rodrigues' rotation by ω, then v).
+    fn moved_camera(camera: &Camera<f64>, v: [f64; 3], w: [f64; 3]) -> Camera<f64> {
+        let motion =
+            nalgebra::Isometry3::new(nalgebra::Vector3::from(v), nalgebra::Vector3::from(w));
+        let m = motion.to_homogeneous() * nalgebra::Matrix4::from_fn(|r, c| camera.viewmat[r][c]);
+        Camera {
+            viewmat: std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)])),
+            ..*camera
+        }
+    }
+
+    #[test]
+    fn camera_gradient_agrees_with_central_differences() {
+        for (mode, sh_degree, appearance) in [
+            (Mode::Classic, None, Appearance::ViewDirection),
+            (Mode::Antialiased, Some(2), Appearance::ViewDirection),
+            (Mode::Classic, Some(3), Appearance::FixedRig),
+        ] {
+            let (g, camera, settings, w_rgb, w_a) = scene(mode, sh_degree, appearance);
+            let (p, _) = render(&g, &camera, &settings);
+            let (_, analytic) = backward_with_camera(&g, &camera, &settings, &p, &w_rgb, &w_a);
+            let h = 1e-6;
+            for k in 0..6 {
+                let step = |e: f64| {
+                    let mut twist = [0.0; 6];
+                    twist[k] = e;
+                    let moved = moved_camera(
+                        &camera,
+                        [twist[0], twist[1], twist[2]],
+                        [twist[3], twist[4], twist[5]],
+                    );
+                    loss(&g, &moved, &settings, &w_rgb, &w_a)
+                };
+                let numeric = (step(h) - step(-h)) / (2.0 * h);
+                let value = match k {
+                    0..3 => analytic.translation[k],
+                    _ => analytic.rotation[k - 3],
+                };
+                assert!(
+                    (value - numeric).abs() <= 1e-4 * (1.0 + numeric.abs()),
+                    "{mode:?} {appearance:?} camera twist {k}: analytic {value} vs numeric {numeric}"
+                );
+                assert!(
+                    numeric.abs() > 1e-3,
+                    "twist {k} moves the loss in this scene"
+                );
+            }
+        }
     }
 
     #[test]

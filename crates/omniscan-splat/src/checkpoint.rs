@@ -5,7 +5,10 @@
 //! Tensors: `means` `[N,3]`, `log_scales` `[N,3]`, `quats` `[N,4]`,
 //! `opacity_logits` `[N]`, `sh` `[N·K,3]` (float32); `adam.<g>.m`,
 //! `adam.<g>.v` for the five parameter groups (float32); `grad2d_sum`
-//! (float32), `grad2d_count` (uint32), `order` (uint32). Metadata: `format`
+//! (float32), `grad2d_count` (uint32), `order` (uint32); with pose
+//! refinement, `pose.views` `[V,18]` and `pose.groups` `[G,18]` (float64:
+//! each correction's six parameters and their two Adam moments) and
+//! `pose.views.steps`, `pose.groups.steps` (uint32). Metadata: `format`
 //! = `omniscan-train-state-v2`, `step`, `extent`, `rng_word_pos`,
 //! `sh_degree`, `antialiased`, `appearance`, `fingerprint`, and `checksum`:
 //! an FNV-1a digest of every tensor (name, type, shape, bytes) and every
@@ -18,6 +21,7 @@ use std::path::Path;
 
 use safetensors::{Dtype, SafeTensors, tensor::TensorView};
 
+use crate::pose::{Learned, PoseState};
 use crate::train::TrainState;
 use crate::{SplatError, Splats};
 
@@ -52,12 +56,91 @@ fn bytes_u32(v: &[u32]) -> Vec<u8> {
     v.iter().flat_map(|x| x.to_le_bytes()).collect()
 }
 
+type Tensor = (String, Dtype, Vec<usize>, Vec<u8>);
+
+/// A pose refinement's corrections as two tensors each for the views and
+/// the groups.
+fn pose_tensors(poses: &PoseState) -> Vec<Tensor> {
+    let mut tensors = Vec::new();
+    for (name, learned) in [("pose.views", &poses.views), ("pose.groups", &poses.groups)] {
+        let values: Vec<u8> = learned
+            .iter()
+            .flat_map(|l| l.params.iter().chain(&l.m).chain(&l.v))
+            .flat_map(|x| x.to_le_bytes())
+            .collect();
+        tensors.push((name.into(), Dtype::F64, vec![learned.len(), 18], values));
+        let steps: Vec<u32> = learned.iter().map(|l| l.steps).collect();
+        tensors.push((
+            format!("{name}.steps"),
+            Dtype::U32,
+            vec![learned.len()],
+            bytes_u32(&steps),
+        ));
+    }
+    tensors
+}
+
+/// The corrections [`pose_tensors`] wrote, if the checkpoint has them.
+fn read_poses(tensors: &SafeTensors, path: &Path) -> Result<Option<PoseState>, SplatError> {
+    let bad = |m: String| SplatError::file(path, m);
+    if tensors.tensor("pose.views").is_err() {
+        return Ok(None);
+    }
+    let read = |name: &str| -> Result<Vec<Learned>, SplatError> {
+        let values = tensors
+            .tensor(name)
+            .map_err(|_| bad(format!("tensor `{name}` is missing")))?;
+        let steps = tensors
+            .tensor(&format!("{name}.steps"))
+            .map_err(|_| bad(format!("tensor `{name}.steps` is missing")))?;
+        let count = steps.shape().first().copied().unwrap_or(0);
+        if values.dtype() != Dtype::F64
+            || values.shape() != [count, 18]
+            || steps.dtype() != Dtype::U32
+            || steps.shape().len() != 1
+        {
+            return Err(bad(format!(
+                "tensors `{name}` ({:?} {:?}) and `{name}.steps` ({:?} {:?}) do not hold pose corrections",
+                values.dtype(),
+                values.shape(),
+                steps.dtype(),
+                steps.shape()
+            )));
+        }
+        let numbers: Vec<f64> = values
+            .data()
+            .chunks_exact(8)
+            .map(|b| f64::from_le_bytes(b.try_into().expect("8 bytes")))
+            .collect();
+        let counts = steps
+            .data()
+            .chunks_exact(4)
+            .map(|b| u32::from_le_bytes(b.try_into().expect("4 bytes")));
+        Ok(numbers
+            .chunks_exact(18)
+            .zip(counts)
+            .map(|(n, steps)| Learned {
+                params: std::array::from_fn(|k| n[k]),
+                m: std::array::from_fn(|k| n[6 + k]),
+                v: std::array::from_fn(|k| n[12 + k]),
+                steps,
+            })
+            .collect())
+    };
+    let poses = PoseState {
+        views: read("pose.views")?,
+        groups: read("pose.groups")?,
+    };
+    poses.validate().map_err(|e| bad(e.to_string()))?;
+    Ok(Some(poses))
+}
+
 /// Writes `state` to `path` atomically.
 pub fn save(state: &TrainState, path: &Path) -> Result<(), SplatError> {
     let s = &state.splats;
     let n = s.len();
     let flat3 = |v: &[[f32; 3]]| v.iter().flatten().copied().collect::<Vec<f32>>();
-    let mut tensors: Vec<(String, Dtype, Vec<usize>, Vec<u8>)> = vec![
+    let mut tensors: Vec<Tensor> = vec![
         (
             "means".into(),
             Dtype::F32,
@@ -107,6 +190,9 @@ pub fn save(state: &TrainState, path: &Path) -> Result<(), SplatError> {
             bytes_u32(&state.order.iter().map(|&i| i as u32).collect::<Vec<_>>()),
         ),
     ];
+    if let Some(poses) = &state.poses {
+        tensors.extend(pose_tensors(poses));
+    }
     for (g, (m, v)) in state.moments.iter().enumerate() {
         tensors.push((
             format!("adam.{g}.m"),
@@ -289,6 +375,7 @@ pub fn load(path: &Path) -> Result<TrainState, SplatError> {
         order: words("order")?.into_iter().map(|i| i as usize).collect(),
         rng_word_pos: number("rng_word_pos")?,
         fingerprint: meta("fingerprint")?.clone(),
+        poses: read_poses(&tensors, path)?,
     })
 }
 
@@ -318,6 +405,18 @@ mod tests {
             order: vec![1, 0],
             rng_word_pos: 42,
             fingerprint: "test".into(),
+            poses: Some(PoseState {
+                views: vec![
+                    Learned {
+                        params: [1e-3, -2e-3, 3e-3, 4e-4, 5e-4, -6e-4],
+                        m: [1e-5; 6],
+                        v: [1e-9; 6],
+                        steps: 3,
+                    };
+                    2
+                ],
+                groups: vec![Learned::default()],
+            }),
         }
     }
 
@@ -331,8 +430,8 @@ mod tests {
         let bytes = std::fs::read(&path).unwrap();
         let back = load(&path).unwrap();
         assert_eq!(
-            (back.step, back.extent, back.splats),
-            (7, 1.5, state().splats)
+            (back.step, back.extent, back.splats, back.poses),
+            (7, 1.5, state().splats, state().poses)
         );
         let header = 8 + u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
         for at in (header..bytes.len()).step_by(7) {
@@ -342,11 +441,17 @@ mod tests {
             let message = load(&path).unwrap_err().to_string();
             assert!(message.contains("checksum"), "byte {at}: {message}");
         }
-        let text = String::from_utf8_lossy(&bytes[..header]).into_owned();
+        // The JSON header after its 8-byte length (which is not UTF-8).
+        let text = String::from_utf8_lossy(&bytes[8..header]).into_owned();
         for (from, to) in [("\"1.5\"", "\"2.5\""), ("\"step\":\"7\"", "\"step\":\"9\"")] {
             assert!(text.contains(from), "{from} not in {text}");
             // Same length, so the header's size stays right.
-            let edited = [text.replacen(from, to, 1).as_bytes(), &bytes[header..]].concat();
+            let edited = [
+                &bytes[..8],
+                text.replacen(from, to, 1).as_bytes(),
+                &bytes[header..],
+            ]
+            .concat();
             std::fs::write(&path, &edited).unwrap();
             let message = load(&path).unwrap_err().to_string();
             assert!(message.contains("checksum"), "{to}: {message}");

@@ -36,6 +36,7 @@ pub mod offset;
 pub mod orbit;
 pub mod packed;
 pub mod ply;
+pub mod pose;
 pub mod raster;
 pub mod sh;
 pub mod spz;

@@ -60,6 +60,9 @@ pub struct TrainConfig {
     /// Adam's rate for the SH bands above the DC term (view-dependent
     /// colour); the DC term's is 2.5e-3.
     pub sh_rest_lr: f32,
+    /// Learn a correction of each view's camera pose with the splats
+    /// ([`crate::pose`]); `None`: the poses are taken as recorded.
+    pub pose: Option<crate::pose::PoseConfig>,
 }
 
 /// How splats are added and removed during training.
@@ -117,6 +120,7 @@ impl TrainConfig {
             densification: Densification::Adaptive,
             position_lr: 1.6e-4,
             sh_rest_lr: SH_REST_LR,
+            pose: None,
         }
     }
 
@@ -480,6 +484,8 @@ pub struct TrainState {
     pub rng_word_pos: u128,
     /// The settings and views the state belongs to.
     pub fingerprint: String,
+    /// The pose corrections and their moments, with pose refinement.
+    pub poses: Option<crate::pose::PoseState>,
 }
 
 /// What a checkpoint must match to be resumed: the settings, the number of
@@ -800,12 +806,21 @@ mod tests {
 
     #[test]
     fn a_resumed_run_ends_with_the_model_of_an_uninterrupted_one() {
-        for densification in [Densification::Adaptive, Densification::Mcmc] {
-            resumes_exactly(densification);
+        // Pose refinement's corrections and moments are in the checkpoint too.
+        let poses = crate::pose::PoseConfig {
+            from_step: 3,
+            ..Default::default()
+        };
+        for (densification, pose) in [
+            (Densification::Adaptive, None),
+            (Densification::Mcmc, None),
+            (Densification::Adaptive, Some(poses)),
+        ] {
+            resumes_exactly(densification, pose);
         }
     }
 
-    fn resumes_exactly(densification: Densification) {
+    fn resumes_exactly(densification: Densification, pose: Option<crate::pose::PoseConfig>) {
         let (views, start) = problem();
         let config = TrainConfig {
             densify_from: 5,
@@ -814,6 +829,7 @@ mod tests {
             sh_interval: 8,
             reset_every: 15,
             densification,
+            pose,
             ..TrainConfig::with_steps(24)
         };
         let straight = fit(&views, start.clone(), &config);
@@ -871,6 +887,18 @@ mod tests {
             .to_string()
         };
         let err = refusal(&views, &TrainConfig { seed: 1, ..config });
+        assert!(err.contains("other settings or views"), "{err}");
+        let other_poses = match pose {
+            Some(_) => None,
+            None => Some(crate::pose::PoseConfig::default()),
+        };
+        let err = refusal(
+            &views,
+            &TrainConfig {
+                pose: other_poses,
+                ..config
+            },
+        );
         assert!(err.contains("other settings or views"), "{err}");
         let mut moved = views.clone();
         moved[0].camera.viewmat[0][3] += 1e-6;

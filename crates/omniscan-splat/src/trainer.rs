@@ -18,6 +18,7 @@ use crate::adam::Adam;
 use crate::backend::Renderer;
 use crate::backward::backward_binned;
 use crate::gpu::training::{DeviceState, HostState, LossTarget, StepRates, ViewTargets};
+use crate::pose::{PoseCorrections, PoseRefiner, PoseState, rotation_centre};
 use crate::raster::{bin_tiles, project, rasterize_binned};
 use crate::sh::coefficients;
 use crate::strategy::{Refinement, Strategy, moment_strides};
@@ -62,6 +63,8 @@ pub struct Trainer<'a, V: TrainingView> {
     /// the views' loss targets kept there.
     device: Option<(DeviceState, ViewTargets)>,
     scratch: Option<View>,
+    /// With `config.pose`: the views' pose corrections.
+    pose: Option<PoseRefiner>,
 }
 
 impl<'a, V: TrainingView> Trainer<'a, V> {
@@ -106,7 +109,19 @@ impl<'a, V: TrainingView> Trainer<'a, V> {
             fingerprint,
             device: None,
             scratch: None,
+            pose: config.pose.map(|config| PoseRefiner {
+                config,
+                state: PoseState::new(views.len(), 1),
+                group_of: vec![0; views.len()],
+                centre: rotation_centre(views.iter().map(|v| v.camera())).into(),
+            }),
         };
+        if config.pose.is_some() && renderer.is_gpu() {
+            return Err(SplatError::Invalid(
+                "pose refinement runs on the CPU renderer only, for now: train with the CPU backend"
+                    .into(),
+            ));
+        }
         match start {
             Start::Fresh(s) => trainer.init(s)?,
             Start::Resume(state) => trainer.resume(*state)?,
@@ -167,6 +182,25 @@ impl<'a, V: TrainingView> Trainer<'a, V> {
                 "the checkpoint's view order names views that do not exist".into(),
             ));
         }
+        match (&mut self.pose, state.poses) {
+            (None, None) => {}
+            (Some(refiner), Some(poses)) if poses.views.len() == self.views.len() => {
+                poses.validate()?;
+                refiner.state = poses;
+            }
+            (Some(_), Some(poses)) => {
+                return Err(SplatError::Invalid(format!(
+                    "the checkpoint's pose corrections are for {} views, not {}",
+                    poses.views.len(),
+                    self.views.len()
+                )));
+            }
+            (Some(_), None) | (None, Some(_)) => {
+                return Err(SplatError::Invalid(
+                    "the checkpoint and the settings disagree on pose refinement".into(),
+                ));
+            }
+        }
         self.rng.set_word_pos(state.rng_word_pos);
         self.adam = state.moments.map(|(m, v)| Adam { m, v });
         self.splats = state.splats;
@@ -176,6 +210,40 @@ impl<'a, V: TrainingView> Trainer<'a, V> {
         self.grad2d_count = state.grad2d_count;
         self.order = state.order;
         Ok(())
+    }
+
+    /// With pose refinement: puts view `i` in group `groups[i]` (an arm;
+    /// each group learns one camera-side correction). Before the first
+    /// step; all views are in group 0 until then.
+    pub fn with_pose_groups(mut self, groups: &[usize]) -> Result<Self, SplatError> {
+        let Some(refiner) = &mut self.pose else {
+            return Ok(self);
+        };
+        if groups.len() != self.views.len() {
+            return Err(SplatError::Invalid(format!(
+                "{} pose groups for {} views",
+                groups.len(),
+                self.views.len()
+            )));
+        }
+        let count = groups.iter().max().map_or(1, |g| g + 1);
+        if self.next == 1 {
+            refiner.state.groups = vec![Default::default(); count];
+        } else if refiner.state.groups.len() != count {
+            return Err(SplatError::Invalid(format!(
+                "the checkpoint has {} pose groups, the views {count}",
+                refiner.state.groups.len()
+            )));
+        }
+        // The fingerprint stays: the groups are the views' arms, and the
+        // views are in it.
+        refiner.group_of = groups.to_vec();
+        Ok(self)
+    }
+
+    /// The pose corrections learned so far, with pose refinement.
+    pub fn pose_corrections(&self) -> Option<PoseCorrections> {
+        (self.pose.as_ref()).map(|r| r.state.corrections(r.centre.into()))
     }
 
     /// Steps done so far.
@@ -280,8 +348,12 @@ impl<'a, V: TrainingView> Trainer<'a, V> {
         let k = s.sh_coefficients();
         let t = step as i32;
         let view = self.views[index].pixels_in(&mut self.scratch);
+        let camera = match &self.pose {
+            Some(refiner) => refiner.camera(index, &view.camera),
+            None => view.camera,
+        };
         let g = s.gaussians_up_to::<f32>(degree);
-        let p = project(&g, &view.camera, &settings);
+        let p = project(&g, &camera, &settings);
         let (width, height) = (view.camera.width, view.camera.height);
         let bins = bin_tiles(&p, width, height);
         let r = rasterize_binned(&bins, width, height, background);
@@ -292,9 +364,9 @@ impl<'a, V: TrainingView> Trainer<'a, V> {
             d_alpha,
             psnr,
         } = step_loss(view, &r, background, config);
-        let grads = backward_binned(
+        let (grads, camera_gradient) = backward_binned(
             &g,
-            &view.camera,
+            &camera,
             &settings,
             &p,
             &bins,
@@ -302,6 +374,17 @@ impl<'a, V: TrainingView> Trainer<'a, V> {
             &d_alpha,
             config.absolute_gradients,
         );
+        if let Some(refiner) = &mut self.pose {
+            let extent = f64::from(self.extent);
+            refiner.step(
+                index,
+                &view.camera,
+                &camera_gradient,
+                step,
+                config.steps,
+                extent,
+            );
+        }
         if self.strategy.uses_gradient_statistics() {
             // Screen-space gradient statistics for densification (gsplat
             // scales by half the image size).
@@ -444,6 +527,7 @@ impl<'a, V: TrainingView> Trainer<'a, V> {
             order: self.order.clone(),
             rng_word_pos: self.rng.get_word_pos(),
             fingerprint: self.fingerprint.clone(),
+            poses: self.pose.as_ref().map(|r| r.state.clone()),
         })
     }
 
@@ -456,7 +540,7 @@ impl<'a, V: TrainingView> Trainer<'a, V> {
 }
 
 /// The scene extent: the splats' spread around their centre (at least 1 mm).
-fn extent(s: &Splats) -> f32 {
+pub(crate) fn extent(s: &Splats) -> f32 {
     let n = s.len().max(1) as f32;
     let c = [0, 1, 2].map(|a| s.means.iter().map(|m| m[a]).sum::<f32>() / n);
     s.means
@@ -504,19 +588,32 @@ pub fn train_resumable(
     start: Start,
     config: &TrainConfig,
     renderer: &Renderer,
-    mut checkpoints: Option<Checkpoints<'_>>,
+    checkpoints: Option<Checkpoints<'_>>,
     progress: &mut dyn FnMut(usize, f32, f64),
 ) -> Result<Splats, SplatError> {
     let mut trainer = Trainer::new(views, start, config, renderer)?;
+    run_to_end(&mut trainer, checkpoints, progress)?;
+    trainer.finish()
+}
+
+/// Steps `trainer` to its last step, calling `progress(step, loss, psnr)`
+/// every step and saving its state every `checkpoints.every` steps (not
+/// after the last).
+pub fn run_to_end<V: TrainingView>(
+    trainer: &mut Trainer<'_, V>,
+    mut checkpoints: Option<Checkpoints<'_>>,
+    progress: &mut dyn FnMut(usize, f32, f64),
+) -> Result<(), SplatError> {
+    let steps = trainer.config.steps;
     while let Some(report) = trainer.step()? {
         progress(report.step, report.loss, report.psnr);
         if let Some(c) = checkpoints.as_mut()
             && c.every > 0
             && report.step % c.every == 0
-            && report.step < config.steps
+            && report.step < steps
         {
             (c.save)(&trainer.checkpoint()?)?;
         }
     }
-    trainer.finish()
+    Ok(())
 }

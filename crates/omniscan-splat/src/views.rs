@@ -442,6 +442,17 @@ impl ViewSource {
             .collect()
     }
 
+    /// For a capture's views: the capture, and which frame (and arm) each
+    /// view is; `None` for a photo set.
+    pub fn capture_views(
+        &self,
+    ) -> Option<(&omniscan_core::Capture, &[omniscan_core::poses::CameraView])> {
+        match &self.frames {
+            Frames::Capture { capture, views, .. } => Some((capture, views)),
+            Frames::Photos { .. } => None,
+        }
+    }
+
     /// View `index`'s camera (`index < len()`) and its image's file name
     /// without the extension, without decoding the image: a photo set's
     /// image has its header read for its size, which must be the frame's

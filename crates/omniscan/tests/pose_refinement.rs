@@ -1,0 +1,63 @@
+//! `train --refine-poses` on a simulated capture whose recorded gripper
+//! poses carry calibration error (`sim --pose-noise-*`): the report's
+//! corrections bring the poses closer to the simulator's truth.
+
+mod common;
+
+use common::omniscan;
+
+fn json(args: &[&str]) -> serde_json::Value {
+    let out = omniscan(args);
+    assert!(
+        out.status.success(),
+        "{args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).expect("a JSON report")
+}
+
+#[test]
+fn refined_poses_come_closer_to_the_truth() {
+    let tmp = tempfile::tempdir().unwrap();
+    let capture = tmp.path().join("cap");
+    let capture = capture.to_str().unwrap();
+    #[rustfmt::skip]
+    let sim = [
+        "sim", "--object", "builtin:remote", "--out", capture, "--width", "160", "--height", "120",
+        "--wrist-angles", "6", "--latitudes", "3", "--supersample", "1", "--no-empty-pass",
+        "--pose-noise-deg", "1", "--pose-noise-mm", "3", "--seed", "2", "--json",
+    ];
+    json(&sim);
+    let model = tmp.path().join("m.ply");
+    #[rustfmt::skip]
+    let report = json(&[
+        "train", capture, "--arm", "left", "--use-ground-truth-masks", "--out", model.to_str().unwrap(),
+        "--steps", "600", "--downscale", "1", "--hold-out-every", "6", "--sh-degree", "0",
+        "--initial-points", "2000", "--backend", "cpu", "--refine-poses", "--pose-fit-steps", "40",
+        "--json",
+    ]);
+    let poses = &report["poses"];
+    assert_eq!(poses["train"].as_array().unwrap().len(), 15, "{poses}");
+    assert_eq!(poses["held_out"].as_array().unwrap().len(), 3, "{poses}");
+    assert_eq!(poses["groups"][0]["group"], "left");
+    let truth = &poses["against_truth"];
+    let figure = |set: &str, what: &str| truth[set][what].as_f64().unwrap();
+    let recorded = figure("recorded", "rms_translation_mm");
+    assert!(
+        (2.0..4.0).contains(&recorded),
+        "the simulated error is about 3 mm: {truth}"
+    );
+    assert!(
+        figure("train", "rms_translation_mm") < 0.6 * recorded,
+        "{truth}"
+    );
+    assert!(
+        figure("held_out", "rms_translation_mm") < 0.6 * recorded,
+        "{truth}"
+    );
+    // Every training view has its own correction, and the frame it is.
+    let frames: Vec<u64> = (poses["train"].as_array().unwrap().iter())
+        .map(|v| v["frame"].as_u64().unwrap())
+        .collect();
+    assert!(frames.windows(2).all(|w| w[0] < w[1]), "{frames:?}");
+}
