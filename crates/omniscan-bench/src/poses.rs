@@ -167,8 +167,10 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         );
     }
     if let Some(t) = truth {
-        println!("| poses against the truth (RMS / max) | rotation (°) | translation (mm) |");
-        println!("|---|---|---|");
+        println!(
+            "| poses against the truth (RMS / max) | rotation (°) | translation (mm) | across the view (mm) | along the view (mm) | roll about the view (°) | tilt across it (°) |"
+        );
+        println!("|---|---|---|---|---|---|---|");
         let rows = [
             ("recorded", Some(t.recorded)),
             ("refined, training views", Some(t.train)),
@@ -177,11 +179,15 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         for (name, e) in rows {
             if let Some(e) = e {
                 println!(
-                    "| {name} | {:.3} / {:.3} | {:.3} / {:.3} |",
+                    "| {name} | {:.3} / {:.3} | {:.3} / {:.3} | {:.3} | {:.3} | {:.3} | {:.3} |",
                     e.rms_rotation_deg,
                     e.max_rotation_deg,
                     e.rms_translation_mm,
-                    e.max_translation_mm
+                    e.max_translation_mm,
+                    e.rms_across_view_mm,
+                    e.rms_along_view_mm,
+                    e.rms_roll_deg,
+                    e.rms_tilt_deg
                 );
             }
         }

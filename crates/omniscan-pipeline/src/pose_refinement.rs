@@ -127,6 +127,18 @@ pub struct PoseErrors {
     pub rms_translation_mm: f64,
     pub max_rotation_deg: f64,
     pub max_translation_mm: f64,
+    /// The translation's part across the view (perpendicular to the
+    /// camera's optical axis), which moves the object in the image.
+    pub rms_across_view_mm: f64,
+    /// Its part along the optical axis, which only scales the object's
+    /// image by a tiny amount and is hardly seen from one camera.
+    pub rms_along_view_mm: f64,
+    /// The rotation's part about the optical axis, which turns the object's
+    /// image.
+    pub rms_roll_deg: f64,
+    /// Its part about axes across the view, which turns the object toward
+    /// or away from the camera: hardly seen on a small, distant object.
+    pub rms_tilt_deg: f64,
 }
 
 /// The recorded and the corrected poses against the truth.
@@ -269,7 +281,7 @@ fn against_truth(
         let world_to_camera = v.camera_to_object.inverse();
         let effective =
             world_to_camera.inverse() * group.isometry() * world_to_camera * own.isometry();
-        Some((true_correction, effective))
+        Some((true_correction, effective, world_to_camera.rotation))
     };
     let pairs = |indices: &[usize], own: &[Correction], zero: bool| {
         (indices.iter().zip(own))
@@ -296,7 +308,12 @@ fn against_truth(
     })
 }
 
-type Pair = (Isometry3<f64>, Isometry3<f64>);
+/// A view's true correction, the one it has, and its camera's rotation.
+type Pair = (
+    Isometry3<f64>,
+    Isometry3<f64>,
+    nalgebra::UnitQuaternion<f64>,
+);
 
 /// Each view's residual truth⁻¹·effective, which the common motion G of the
 /// model's frame makes G for all views: the residuals' errors after G's
@@ -304,7 +321,7 @@ type Pair = (Isometry3<f64>, Isometry3<f64>);
 fn errors_up_to_common(pairs: &[Pair]) -> (PoseErrors, Isometry3<f64>) {
     let residuals: Vec<Correction> = pairs
         .iter()
-        .map(|(t, e)| Correction::of(&(t.inverse() * e)))
+        .map(|(t, e, _)| Correction::of(&(t.inverse() * e)))
         .collect();
     let common = omniscan_splat::pose::mean_motion(&residuals);
     (errors(pairs, Some(common)), common)
@@ -315,24 +332,36 @@ fn errors(pairs: &[Pair], common: Option<Isometry3<f64>>) -> PoseErrors {
         Some(c) => (c, pairs.to_vec()),
         None => return errors_up_to_common(pairs).0,
     };
-    let left: Vec<(f64, f64)> = pairs
+    // Each view's rotation left (°), translation left (mm), that
+    // translation across and along its camera's view, and the rotation
+    // about the view's axis and across it (°).
+    let left: Vec<[f64; 6]> = pairs
         .iter()
-        .map(|(t, e)| {
+        .map(|(t, e, camera)| {
             let d = t.inverse() * e * common.inverse();
-            (
+            let seen = camera * d.translation.vector * 1e3;
+            let turn = (camera * d.rotation.scaled_axis()).map(f64::to_degrees);
+            [
                 d.rotation.angle().to_degrees(),
-                d.translation.vector.norm() * 1e3,
-            )
+                seen.norm(),
+                seen.xy().norm(),
+                seen.z.abs(),
+                turn.z.abs(),
+                turn.xy().norm(),
+            ]
         })
         .collect();
     let n = left.len().max(1) as f64;
-    let rms =
-        |f: fn(&(f64, f64)) -> f64| (left.iter().map(|x| f(x).powi(2)).sum::<f64>() / n).sqrt();
-    let max = |f: fn(&(f64, f64)) -> f64| left.iter().map(f).fold(0.0, f64::max);
+    let rms = |k: usize| (left.iter().map(|x| x[k].powi(2)).sum::<f64>() / n).sqrt();
+    let max = |k: usize| left.iter().map(|x| x[k]).fold(0.0, f64::max);
     PoseErrors {
-        rms_rotation_deg: rms(|x| x.0),
-        rms_translation_mm: rms(|x| x.1),
-        max_rotation_deg: max(|x| x.0),
-        max_translation_mm: max(|x| x.1),
+        rms_rotation_deg: rms(0),
+        rms_translation_mm: rms(1),
+        max_rotation_deg: max(0),
+        max_translation_mm: max(1),
+        rms_across_view_mm: rms(2),
+        rms_along_view_mm: rms(3),
+        rms_roll_deg: rms(4),
+        rms_tilt_deg: rms(5),
     }
 }

@@ -47,17 +47,47 @@ fn refined_poses_come_closer_to_the_truth() {
         (2.0..4.0).contains(&recorded),
         "the simulated error is about 3 mm: {truth}"
     );
-    assert!(
-        figure("train", "rms_translation_mm") < 0.6 * recorded,
-        "{truth}"
-    );
-    assert!(
-        figure("held_out", "rms_translation_mm") < 0.6 * recorded,
-        "{truth}"
-    );
+    // The part of the error the images show, across the view, shrinks;
+    // along the optical axis it hardly shows (docs/train.md).
+    let across = figure("recorded", "rms_across_view_mm");
+    assert!(across > 1.5, "{truth}");
+    // Training views move less far than held-out ones, which fit a frozen
+    // model at full rate.
+    for (set, share) in [("train", 0.75), ("held_out", 0.5)] {
+        let refined = figure(set, "rms_across_view_mm");
+        assert!(
+            refined < share * across,
+            "{set}: {refined} mm of {across}: {truth}"
+        );
+    }
     // Every training view has its own correction, and the frame it is.
     let frames: Vec<u64> = (poses["train"].as_array().unwrap().iter())
         .map(|v| v["frame"].as_u64().unwrap())
         .collect();
     assert!(frames.windows(2).all(|w| w[0] < w[1]), "{frames:?}");
+    // The twin refines in each of its trainings; the merged model's
+    // views are in two groups, one camera-side correction per arm, and its
+    // right arm's corrections are compared in the left gripper's frame.
+    let twin = tmp.path().join("twin");
+    #[rustfmt::skip]
+    let twin_report = json(&[
+        "twin", capture, "--out", twin.to_str().unwrap(), "--steps", "300", "--downscale", "1",
+        "--use-ground-truth-masks", "--backend", "cpu", "--refine-poses", "--pose-fit-steps", "20",
+        "--json",
+    ]);
+    let stages = &twin_report["stages"];
+    for (stage, groups) in [
+        ("left", vec!["left"]),
+        ("right", vec!["right"]),
+        ("twin", vec!["left", "right"]),
+    ] {
+        let poses = &stages[stage]["report"]["poses"];
+        let names: Vec<&str> = (poses["groups"].as_array().unwrap().iter())
+            .map(|g| g["group"].as_str().unwrap())
+            .collect();
+        assert_eq!(names, groups, "{stage}: {poses}");
+        let truth = &poses["against_truth"];
+        let across = |set: &str| truth[set]["rms_across_view_mm"].as_f64().unwrap();
+        assert!(across("train") < across("recorded"), "{stage}: {truth}");
+    }
 }
