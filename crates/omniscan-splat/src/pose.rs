@@ -359,7 +359,14 @@ impl PoseRefiner {
         steps: usize,
         extent: f64,
     ) {
-        if step < self.config.from_step {
+        // A render with no splats in sight gives no gradient to follow; one
+        // that is not finite would spoil the corrections for good.
+        let finite = g
+            .translation
+            .iter()
+            .chain(&g.rotation)
+            .all(|x| x.is_finite());
+        if step < self.config.from_step || !finite {
             return;
         }
         let decay = 0.01f64.powf(step as f64 / steps.max(1) as f64);

@@ -5,7 +5,7 @@ use std::path::Path;
 use std::process::Command;
 
 mod common;
-use common::{assert_refused, omniscan, tiny_capture, tiny_left_export};
+use common::{assert_refused, omniscan, omniscan_json, tiny_capture, tiny_left_export};
 
 /// Simulates the built-in remote into `dir` (no empty-gripper pass, no
 /// supersampling) with `flags` added: size, trajectory, slip, noise.
@@ -833,17 +833,6 @@ fn train_fits_a_small_simulated_capture_and_reports_held_out_metrics() {
         a.extend_from_slice(flags);
         assert_refused(&omniscan(&a), message);
     }
-}
-
-/// Runs `omniscan` and parses its JSON report, failing with its stderr.
-fn omniscan_json(args: &[&str]) -> serde_json::Value {
-    let out = omniscan(args);
-    assert!(
-        out.status.success(),
-        "{args:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    serde_json::from_slice(&out.stdout).unwrap()
 }
 
 #[test]

@@ -4,17 +4,7 @@
 
 mod common;
 
-use common::omniscan;
-
-fn json(args: &[&str]) -> serde_json::Value {
-    let out = omniscan(args);
-    assert!(
-        out.status.success(),
-        "{args:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    serde_json::from_slice(&out.stdout).expect("a JSON report")
-}
+use common::omniscan_json as json;
 
 #[test]
 fn refined_poses_come_closer_to_the_truth() {

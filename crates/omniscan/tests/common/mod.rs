@@ -13,6 +13,17 @@ pub fn omniscan(args: &[&str]) -> Output {
         .expect("run omniscan")
 }
 
+/// Runs `omniscan` and parses its JSON report, failing with its stderr.
+pub fn omniscan_json(args: &[&str]) -> serde_json::Value {
+    let out = omniscan(args);
+    assert!(
+        out.status.success(),
+        "{args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
 /// Asserts that a run failed and that its error says `message`.
 pub fn assert_refused(out: &Output, message: &str) {
     assert!(!out.status.success());
