@@ -45,6 +45,12 @@ pub struct EvalSettings {
     /// Also write, per view, the photo (object pixels) beside the render as PNG into this directory.
     #[arg(long)]
     pub renders: Option<PathBuf>,
+    /// Fit each scored view's pose to the model before scoring it (test-time pose fitting, as `train --refine-poses` scores its held-out views), for views whose recorded poses carry calibration error; the report lists the corrections. Runs on the CPU.
+    #[arg(long)]
+    pub fit_poses: bool,
+    /// Adam steps per view with --fit-poses.
+    #[arg(long, default_value_t = omniscan_splat::pose::FIT_STEPS)]
+    pub pose_fit_steps: usize,
 }
 
 default_from_flags!(EvalSettings);
@@ -57,6 +63,9 @@ pub struct EvalReport {
     pub evaluation: Evaluation,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub checkpoint_step: Option<usize>,
+    /// With --fit-poses: each scored view's fitted correction.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub poses: Option<Vec<crate::pose_refinement::ViewPose>>,
 }
 
 /// Scores `model` (a 3DGS PLY, or a training checkpoint
@@ -110,13 +119,24 @@ pub fn evaluate(
         progress.note(&format!("rendering on {}", renderer.describe()));
     }
     let at_once = eval_memory_check(&source, &indices, settings.downscale, &renderer)?;
+    let fitting = settings
+        .fit_poses
+        .then(|| PoseFitting::new(&source, &indices, settings.pose_fit_steps))
+        .transpose()?;
     progress.start("evaluating", indices.len() as u64, "views");
     let mut evaluation = crate::memory::with_threads(at_once, || {
         omniscan_splat::evaluation::evaluate_views(
             &model,
             &renderer,
             indices.len(),
-            |i| source.load(indices[i]).map(std::borrow::Cow::Owned),
+            |i| {
+                let view = source.load(indices[i])?;
+                match &fitting {
+                    Some(fitting) => fitting.fitted(&model, i, view),
+                    None => Ok(view),
+                }
+                .map(std::borrow::Cow::Owned)
+            },
             lpips.as_ref(),
             |i, v, rgb| {
                 progress.advance();
@@ -128,13 +148,72 @@ pub fn evaluate(
         )
     })??;
     progress.finish();
-    for (figures, index) in evaluation.per_view.iter_mut().zip(indices) {
+    for (figures, &index) in evaluation.per_view.iter_mut().zip(&indices) {
         figures.view = index;
     }
     Ok(EvalReport {
         evaluation,
         checkpoint_step,
+        poses: fitting.map(|f| f.report(&source, &indices)),
     })
+}
+
+/// Test-time pose fitting of the scored views: each view's correction,
+/// found as it is read (views are read on several threads).
+struct PoseFitting {
+    config: omniscan_splat::train::TrainConfig,
+    centre: [f64; 3],
+    steps: usize,
+    fitted: std::sync::Mutex<Vec<omniscan_splat::pose::Correction>>,
+}
+
+impl PoseFitting {
+    fn new(
+        source: &omniscan_splat::views::ViewSource,
+        indices: &[usize],
+        steps: usize,
+    ) -> Result<PoseFitting> {
+        let cameras = (indices.iter())
+            .map(|&i| source.camera(i).map(|(_, c)| c))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(PoseFitting {
+            // Training's loss weights, and the refinement's rates.
+            config: omniscan_splat::train::TrainConfig {
+                pose: Some(Default::default()),
+                ..omniscan_splat::train::TrainConfig::with_steps(steps)
+            },
+            centre: omniscan_splat::pose::rotation_centre(&cameras),
+            steps,
+            fitted: std::sync::Mutex::new(vec![Default::default(); indices.len()]),
+        })
+    }
+
+    /// `view` (the `i`-th scored) at its fitted pose.
+    fn fitted(
+        &self,
+        model: &omniscan_splat::Splats,
+        i: usize,
+        mut view: View,
+    ) -> Result<View, omniscan_splat::SplatError> {
+        use omniscan_splat::pose::{Correction, corrected, fit_view};
+        let none = Correction::default();
+        let c = fit_view(model, &view, &none, self.centre, &self.config, self.steps)?;
+        view.camera = corrected(&view.camera, &none, &c);
+        self.fitted.lock().expect("no thread panicked holding it")[i] = c;
+        Ok(view)
+    }
+
+    fn report(
+        self,
+        source: &omniscan_splat::views::ViewSource,
+        indices: &[usize],
+    ) -> Vec<crate::pose_refinement::ViewPose> {
+        let fitted = self
+            .fitted
+            .into_inner()
+            .expect("no thread panicked holding it");
+        crate::pose_refinement::view_poses(source, indices, &fitted)
+    }
 }
 
 /// How many views may be scored at once in the memory available, or an

@@ -42,7 +42,7 @@ pub struct PoseSettings {
     #[arg(long, default_value_t = PoseConfig::default().from_step)]
     pub pose_from_step: usize,
     /// Test-time pose fitting: Adam steps per held-out view.
-    #[arg(long, default_value_t = 100)]
+    #[arg(long, default_value_t = omniscan_splat::pose::FIT_STEPS)]
     pub pose_fit_steps: usize,
 }
 
@@ -231,14 +231,6 @@ pub fn report(
     learned: &PoseCorrections,
     fitted: &[Correction],
 ) -> PoseReport {
-    let frames = source.capture_views().map(|(_, v)| v);
-    let view_pose = |view: usize, c: &Correction| ViewPose {
-        view,
-        frame: frames.map(|f| f[view].frame_index),
-        rotation_deg: c.angle_deg(),
-        translation_mm: c.offset_mm(),
-        correction: *c,
-    };
     PoseReport {
         groups: (learned.groups.iter().zip(split.group_names))
             .map(|(c, name)| GroupPose {
@@ -248,14 +240,28 @@ pub fn report(
                 correction: *c,
             })
             .collect(),
-        train: (split.train.iter().zip(&learned.views))
-            .map(|(&v, c)| view_pose(v, c))
-            .collect(),
-        held_out: (split.held_out.iter().zip(fitted))
-            .map(|(&v, c)| view_pose(v, c))
-            .collect(),
+        train: view_poses(source, split.train, &learned.views),
+        held_out: view_poses(source, split.held_out, fitted),
         against_truth: against_truth(source, split, learned, fitted),
     }
+}
+
+/// `corrections[k]` as view `views[k]`'s entry of a report.
+pub fn view_poses(
+    source: &ViewSource,
+    views: &[usize],
+    corrections: &[Correction],
+) -> Vec<ViewPose> {
+    let frames = source.capture_views().map(|(_, v)| v);
+    (views.iter().zip(corrections))
+        .map(|(&view, c)| ViewPose {
+            view,
+            frame: frames.map(|f| f[view].frame_index),
+            rotation_deg: c.angle_deg(),
+            translation_mm: c.offset_mm(),
+            correction: *c,
+        })
+        .collect()
 }
 
 /// The corrections' errors against a simulated capture's true gripper poses.

@@ -28,6 +28,9 @@ use crate::raster::{Camera, bin_tiles, project, rasterize_binned};
 use crate::train::{TrainConfig, step_loss};
 use crate::view::TrainingView;
 
+/// Test-time pose fitting's Adam steps per view, unless told otherwise.
+pub const FIT_STEPS: usize = 100;
+
 /// How poses are refined; part of [`TrainConfig`] (and so of a
 /// checkpoint's fingerprint).
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -55,6 +55,24 @@ fn refined_poses_come_closer_to_the_truth() {
         .map(|v| v["frame"].as_u64().unwrap())
         .collect();
     assert!(frames.windows(2).all(|w| w[0] < w[1]), "{frames:?}");
+    // `eval --fit-poses` scores views after fitting them as training's
+    // report does: better than at their recorded, wrong poses.
+    let eval = |fit: bool| {
+        let mut args = vec!["eval", model.to_str().unwrap(), capture, "--arm", "left"];
+        args.extend(["--held-out-every", "6", "--json"]);
+        if fit {
+            args.extend(["--fit-poses", "--pose-fit-steps", "40"]);
+        }
+        json(&args)
+    };
+    let (recorded, fitted) = (eval(false), eval(true));
+    let psnr = |r: &serde_json::Value| r["psnr_masked"].as_f64().unwrap();
+    assert!(
+        psnr(&fitted) > psnr(&recorded) + 0.5,
+        "{fitted} vs {recorded}"
+    );
+    assert_eq!(fitted["poses"].as_array().unwrap().len(), 3, "{fitted}");
+    assert!(recorded.get("poses").is_none());
     // The twin refines in each of its trainings; the merged model's
     // views are in two groups, one camera-side correction per arm, and its
     // right arm's corrections are compared in the left gripper's frame.
