@@ -30,7 +30,7 @@ def align(source: PathLike, target: PathLike, *, out: PathLike, downscale: int =
 def twin(capture: PathLike, *, out: PathLike, backend: str = 'auto', checkpoint_every: int = 500, downscale: int = 2, gpu_view_memory_gb: float = 4.0, pose_arm_rate: float = 0.1, pose_fit_steps: int = 100, pose_from_step: int = 100, pose_regularisation: float = 0.0001, pose_rotation_lr_rad: float = 0.002, pose_translation_lr: float = 0.005, refine_poses: bool = False, seed: int = 0, steps: int = 3000, use_ground_truth_masks: bool = False, progress: Any = None) -> Report:
     """The whole twin into the folder ``out``: both arms' models, their ..."""
 
-def evaluate(model: PathLike, capture: PathLike, *, arm: str = 'left', backend: str = 'cpu', downscale: int = 1, held_out_every: int = 0, held_out_first: Optional[Any] = None, lpips: Optional[Any] = None, onnx_runtime: Optional[Any] = None, renders: Optional[Any] = None, right_to_left: Optional[Any] = None, progress: Any = None) -> Report:
+def evaluate(model: PathLike, capture: PathLike, *, arm: str = 'left', backend: str = 'cpu', downscale: int = 1, fit_poses: bool = False, held_out_every: int = 0, held_out_first: Optional[Any] = None, lpips: Optional[Any] = None, onnx_runtime: Optional[Any] = None, pose_fit_steps: int = 100, renders: Optional[Any] = None, right_to_left: Optional[Any] = None, progress: Any = None) -> Report:
     """PSNR and SSIM (and LPIPS with a network) of ``model`` against the ..."""
 
 def render(model: PathLike, *, out: PathLike, arm: str = 'left', backend: str = 'auto', background: Sequence[Any] = [0.0, 0.0, 0.0], capture: Optional[Any] = None, height: int = 480, orbit: int = 8, right_to_left: Optional[Any] = None, width: int = 640, progress: Any = None) -> Report:

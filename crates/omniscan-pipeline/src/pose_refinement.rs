@@ -164,9 +164,38 @@ pub struct PoseReport {
     pub against_truth: Option<AgainstTruth>,
 }
 
+/// A trained model's views at their corrected poses, the held-out ones
+/// fitted against the model first (`fitting`: the training configuration
+/// and the Adam steps per view), and the report of the corrections.
+pub fn at_corrected_poses(
+    (model, source): (&Splats, &ViewSource),
+    split: &Split<'_>,
+    (train_views, test_views): (Vec<PackedView>, Vec<PackedView>),
+    learned: &PoseCorrections,
+    (config, steps): (&TrainConfig, usize),
+    progress: &dyn Progress,
+) -> Result<(Vec<PackedView>, Vec<PackedView>, PoseReport)> {
+    let groups_of = |views: &[usize]| views.iter().map(|&i| split.groups[i]).collect::<Vec<_>>();
+    let (train_groups, test_groups) = (groups_of(split.train), groups_of(split.held_out));
+    let fitted = fit_held_out(
+        model,
+        &test_views,
+        &test_groups,
+        learned,
+        config,
+        steps,
+        progress,
+    )?;
+    Ok((
+        corrected_views(&train_views, &train_groups, &learned.views, learned),
+        corrected_views(&test_views, &test_groups, &fitted, learned),
+        report(source, split, learned, &fitted),
+    ))
+}
+
 /// Test-time pose fitting: each held-out view's correction against the
 /// frozen `model`, from its group's camera-side correction.
-pub fn fit_held_out(
+fn fit_held_out(
     model: &Splats,
     views: &[PackedView],
     groups: &[usize],
@@ -198,7 +227,7 @@ pub fn fit_held_out(
 
 /// `views` seen through their corrections (`views[i]` by `corrections[i]`
 /// and its group's).
-pub fn corrected_views(
+fn corrected_views(
     views: &[PackedView],
     groups: &[usize],
     corrections: &[Correction],
@@ -225,7 +254,7 @@ pub struct Split<'a> {
 }
 
 /// The report of `learned` (training views) and `fitted` (held-out).
-pub fn report(
+fn report(
     source: &ViewSource,
     split: &Split<'_>,
     learned: &PoseCorrections,

@@ -23,7 +23,7 @@ use omniscan_splat::trainer::{Checkpoints, Trainer, run_to_end};
 use omniscan_splat::views::{ViewSource, split_held_out_from};
 
 use crate::Progress;
-use crate::pose_refinement::{PoseReport, PoseSettings, Split, view_groups};
+use crate::pose_refinement::{PoseReport, PoseSettings, Split, at_corrected_poses, view_groups};
 use crate::settings::default_from_flags;
 use crate::views::{ArmSet, Merge, view_source};
 
@@ -341,29 +341,22 @@ pub fn train(
     let (train_views, test_views, poses) = match learned {
         None => (train_views, test_views, None),
         Some(learned) => {
-            let test_groups: Vec<usize> = test_indices.iter().map(|&i| groups[i]).collect();
-            let fitted = crate::pose_refinement::fit_held_out(
-                &model,
-                &test_views,
-                &test_groups,
-                &learned,
-                &config,
-                settings.poses.pose_fit_steps,
-                progress,
-            )?;
             let split = Split {
                 train: &train_indices,
                 held_out: &test_indices,
                 groups: &groups,
                 group_names: &group_names,
             };
-            let report = crate::pose_refinement::report(&source, &split, &learned, &fitted);
-            use crate::pose_refinement::corrected_views;
-            (
-                corrected_views(&train_views, &train_groups, &learned.views, &learned),
-                corrected_views(&test_views, &test_groups, &fitted, &learned),
-                Some(report),
-            )
+            let fitting = (&config, settings.poses.pose_fit_steps);
+            let (train_views, test_views, report) = at_corrected_poses(
+                (&model, &source),
+                &split,
+                (train_views, test_views),
+                &learned,
+                fitting,
+                progress,
+            )?;
+            (train_views, test_views, Some(report))
         }
     };
     let test = omniscan_splat::evaluation::evaluate(&model, &test_views, lpips.as_ref())?;
