@@ -5,7 +5,9 @@
 //! [`Trainer::finish`] for the model. One step renders one view, takes the
 //! masked loss (see [`crate::train`]), steps Adam ([`crate::adam`]) and, on
 //! refinement steps, lets the densification [`Strategy`] add and remove
-//! splats. On the CPU renderer everything runs on the CPU; on a GPU the
+//! splats; with pose refinement (`TrainConfig::pose`, [`crate::pose`]) it
+//! renders the view at its corrected pose and steps the correction by the
+//! camera's gradient. On the CPU renderer everything runs on the CPU; on a GPU the
 //! parameters, moments and statistics stay on the device, where rendering,
 //! gradients and Adam run, and come back only to refine, checkpoint and
 //! finish.
