@@ -160,7 +160,11 @@ pub fn backward<F: Real>(
     d_alpha: &[F],
 ) -> Gradients<F> {
     let bins = bin_tiles(p, camera.width, camera.height);
-    backward_binned(g, camera, settings, p, &bins, d_rgb, d_alpha, true).0
+    let wanted = Wanted {
+        absolute: true,
+        camera: false,
+    };
+    backward_binned(g, camera, settings, p, &bins, d_rgb, d_alpha, wanted).0
 }
 
 /// [`backward`], and the gradient with respect to the camera's pose.
@@ -173,11 +177,24 @@ pub fn backward_with_camera<F: Real>(
     d_alpha: &[F],
 ) -> (Gradients<F>, CameraGradient) {
     let bins = bin_tiles(p, camera.width, camera.height);
-    backward_binned(g, camera, settings, p, &bins, d_rgb, d_alpha, true)
+    let wanted = Wanted {
+        absolute: true,
+        camera: true,
+    };
+    backward_binned(g, camera, settings, p, &bins, d_rgb, d_alpha, wanted)
 }
 
-/// [`backward_with_camera`] with the forward pass's tile bins; `absolute`:
-/// whether to sum [`Gradients::means2d_abs`].
+/// What a backward pass computes besides the parameters' gradients.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Wanted {
+    /// [`Gradients::means2d_abs`] (it costs the training step a few percent).
+    pub absolute: bool,
+    /// The camera's gradient (zero when not wanted).
+    pub camera: bool,
+}
+
+/// [`backward_with_camera`] with the forward pass's tile bins, computing
+/// what is `wanted`.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn backward_binned<F: Real>(
     g: &Gaussians<F>,
@@ -187,8 +204,9 @@ pub(crate) fn backward_binned<F: Real>(
     bins: &TileBins<F>,
     d_rgb: &[[F; 3]],
     d_alpha: &[F],
-    absolute: bool,
+    wanted: Wanted,
 ) -> (Gradients<F>, CameraGradient) {
+    let absolute = wanted.absolute;
     let n = g.means.len();
     let (width, height) = (camera.width, camera.height);
     let TileBins { packed, tiles } = bins;
@@ -335,7 +353,7 @@ pub(crate) fn backward_binned<F: Real>(
             Colors::Sh { coeffs, .. } => filled(coeffs.len(), [F::zero(); 3]),
         },
     };
-    let camera_gradient = project_backward(g, camera, settings, p, &mut grads);
+    let camera_gradient = project_backward(g, camera, settings, p, &mut grads, wanted.camera);
     (grads, camera_gradient)
 }
 
@@ -368,6 +386,7 @@ fn project_backward<F: Real>(
     settings: &Settings<F>,
     p: &Projected<F>,
     grads: &mut Gradients<F>,
+    camera_wanted: bool,
 ) -> CameraGradient {
     let ViewGeometry {
         rot,
@@ -591,8 +610,11 @@ fn project_backward<F: Real>(
                     d_pc[1] = d_pc[1] - d_j[1][2] * fy / z2;
                     d_pc[2] = d_pc[2] + d_j[1][2] * two * fy * ty / z3;
                 }
-                let camera_part =
-                    camera_contribution(&rot, pc, d_pc, d_mean, &cov_c, &d_cov_c, rig_turn);
+                let camera_part = if camera_wanted {
+                    camera_contribution(&rot, pc, d_pc, d_mean, &cov_c, &d_cov_c, rig_turn)
+                } else {
+                    [F::zero(); 6]
+                };
                 // Camera to world: mean through Rᵀ, covariance as Rᵀ dΣc R.
                 for a in 0..3 {
                     d_mean[a] =

@@ -23,7 +23,7 @@ use nalgebra::{Isometry3, Matrix3, Matrix4, Rotation3, Translation3, UnitQuatern
 use serde::{Deserialize, Serialize};
 
 use crate::SplatError;
-use crate::backward::{CameraGradient, backward_binned};
+use crate::backward::{CameraGradient, Wanted, backward_binned};
 use crate::raster::{Camera, bin_tiles, project, rasterize_binned};
 use crate::train::{TrainConfig, step_loss};
 use crate::view::TrainingView;
@@ -435,7 +435,10 @@ pub fn fit_view(
             &bins,
             &loss.d_rgb,
             &loss.d_alpha,
-            false,
+            Wanted {
+                absolute: false,
+                camera: true,
+            },
         );
         if !(gradient.translation.iter().chain(&gradient.rotation)).all(|x| x.is_finite()) {
             return Err(SplatError::Invalid(

@@ -18,7 +18,7 @@ use rayon::prelude::*;
 
 use crate::adam::Adam;
 use crate::backend::Renderer;
-use crate::backward::backward_binned;
+use crate::backward::{Wanted, backward_binned};
 use crate::gpu::training::{DeviceState, HostState, LossTarget, StepRates, ViewTargets};
 use crate::pose::{PoseCorrections, PoseRefiner, PoseState, rotation_centre};
 use crate::raster::{bin_tiles, project, rasterize_binned};
@@ -374,7 +374,10 @@ impl<'a, V: TrainingView> Trainer<'a, V> {
             &bins,
             &d_rgb,
             &d_alpha,
-            config.absolute_gradients,
+            Wanted {
+                absolute: config.absolute_gradients,
+                camera: self.pose.is_some(),
+            },
         );
         if let Some(refiner) = &mut self.pose {
             let extent = f64::from(self.extent);
