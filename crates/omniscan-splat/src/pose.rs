@@ -352,11 +352,12 @@ impl PoseRefiner {
     }
 
     /// Steps view `index`'s corrections (and its group's) by the camera
-    /// gradient `g` of the step's loss at `camera` (the recorded one).
+    /// gradient `g` of the step's loss, rendered at `corrected` (the view's
+    /// camera under its corrections, [`PoseRefiner::camera`]).
     pub fn step(
         &mut self,
         index: usize,
-        camera: &Camera<f32>,
+        corrected: &Camera<f32>,
         g: &CameraGradient,
         step: usize,
         steps: usize,
@@ -380,7 +381,7 @@ impl PoseRefiner {
         let group_index = self.group_of[index];
         let group = self.state.groups[group_index].correction(&Vector3::zeros());
         let view = self.state.views[index].correction(&self.centre);
-        let full = Matrix4::from_fn(|r, c| self.camera(index, camera).viewmat[r][c] as f64);
+        let full = Matrix4::from_fn(|r, c| corrected.viewmat[r][c] as f64);
         let (d_view, d_group) = parameter_gradients(g, &full, &group, &view);
         let d_view = self.state.views[index].about_centre(d_view, &self.centre);
         let lambda = self.config.regularisation;

@@ -381,14 +381,7 @@ impl<'a, V: TrainingView> Trainer<'a, V> {
         );
         if let Some(refiner) = &mut self.pose {
             let extent = f64::from(self.extent);
-            refiner.step(
-                index,
-                &view.camera,
-                &camera_gradient,
-                step,
-                config.steps,
-                extent,
-            );
+            refiner.step(index, &camera, &camera_gradient, step, config.steps, extent);
         }
         if self.strategy.uses_gradient_statistics() {
             // Screen-space gradient statistics for densification (gsplat
