@@ -457,17 +457,10 @@ pub fn fit_view(
     Ok(learned.correction(&centre))
 }
 
-/// The rotation (degrees) and translation (mm) between two corrections.
-pub fn difference(a: &Correction, b: &Correction) -> (f64, f64) {
-    let d = a.isometry().inverse() * b.isometry();
-    (
-        d.rotation.angle().to_degrees(),
-        d.translation.vector.norm() * 1e3,
-    )
-}
-
 /// The mean of `corrections` as a rigid motion (rotation by the normalised
-/// quaternion sum); the identity for none.
+/// quaternion sum); the identity for none. The model can take up a motion
+/// shared by all views, so corrections are compared with the truth up to
+/// it: each right-multiplied by its inverse.
 pub fn mean_motion(corrections: &[Correction]) -> Isometry3<f64> {
     let Some(first) = corrections.first() else {
         return Isometry3::identity();
@@ -489,17 +482,6 @@ pub fn mean_motion(corrections: &[Correction]) -> Isometry3<f64> {
         Translation3::from(t / corrections.len() as f64),
         UnitQuaternion::from_quaternion(nalgebra::Quaternion::from(q)),
     )
-}
-
-/// `corrections` with their common part taken out: each right-multiplied by
-/// the inverse of their mean. The model can take up a motion shared by all
-/// views, so corrections are compared with the truth up to it.
-pub fn without_common_motion(corrections: &[Correction]) -> Vec<Correction> {
-    let inverse = mean_motion(corrections).inverse();
-    corrections
-        .iter()
-        .map(|c| Correction::of(&(c.isometry() * inverse)))
-        .collect()
 }
 
 #[cfg(test)]
@@ -765,8 +747,11 @@ mod tests {
             .iter()
             .map(|c| Correction::of(&(c.isometry() * common)))
             .collect();
-        for (a, b) in without_common_motion(&moved).iter().zip(&own) {
-            let (deg, mm) = difference(a, b);
+        let inverse = mean_motion(&moved).inverse();
+        for (a, b) in moved.iter().zip(&own) {
+            let (rad, m) =
+                omniscan_core::geometry::pose_difference(&(a.isometry() * inverse), &b.isometry());
+            let (deg, mm) = (rad.to_degrees(), m * 1e3);
             assert!(deg < 1e-3 && mm < 1e-3, "{deg}° {mm} mm");
         }
     }
