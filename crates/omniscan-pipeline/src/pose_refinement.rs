@@ -334,12 +334,11 @@ fn against_truth(
     let recorded = pairs(split.train, &learned.views, true)?;
     let trained = pairs(split.train, &learned.views, false)?;
     let held_out = pairs(split.held_out, fitted, false)?;
-    let recorded_errors = errors(&recorded, None);
     let (train_errors, common) = errors_up_to_common(&trained);
     Some(AgainstTruth {
-        recorded: recorded_errors,
+        recorded: errors_up_to_common(&recorded).0,
         train: train_errors,
-        held_out: (!held_out.is_empty()).then(|| errors(&held_out, Some(common))),
+        held_out: (!held_out.is_empty()).then(|| errors(&held_out, &common)),
     })
 }
 
@@ -359,14 +358,11 @@ fn errors_up_to_common(pairs: &[Pair]) -> (PoseErrors, Isometry3<f64>) {
         .map(|(t, e, _)| Correction::of(&(t.inverse() * e)))
         .collect();
     let common = omniscan_splat::pose::mean_motion(&residuals);
-    (errors(pairs, Some(common)), common)
+    (errors(pairs, &common), common)
 }
 
-fn errors(pairs: &[Pair], common: Option<Isometry3<f64>>) -> PoseErrors {
-    let (common, pairs) = match common {
-        Some(c) => (c, pairs.to_vec()),
-        None => return errors_up_to_common(pairs).0,
-    };
+/// The errors left in `pairs` after the common motion `common`.
+fn errors(pairs: &[Pair], common: &Isometry3<f64>) -> PoseErrors {
     // Each view's rotation left (°), translation left (mm), that
     // translation across and along its camera's view, and the rotation
     // about the view's axis and across it (°).
