@@ -11,6 +11,8 @@ use omniscan_core::plan::ScanPlanConfig;
 use omniscan_mask::pipeline::Masker;
 use omniscan_mask::{MaskSettings, evaluate_capture, mask_capture};
 use omniscan_scene::gripper::GripperModel;
+use omniscan_sim::builtin::builtin_object;
+use omniscan_sim::grasp::{GraspSettings, plan_grasp_pair};
 use omniscan_sim::{SimConfig, Simulation};
 
 /// A binary STL of the box lo..hi, written here (not by the loaders under test).
@@ -217,6 +219,95 @@ fn bad_urdfs_are_refused_by_name() {
     );
 }
 
+/// Whether `p` lies inside the closed `mesh`: the parity of a ray's
+/// crossings, by majority over three skew rays (a ray along an edge
+/// miscounts). Independent of the planner's voxels and boxes.
+fn inside_mesh(mesh: &omniscan_scene::mesh::Mesh, p: &nalgebra::Point3<f64>) -> bool {
+    let rays = [
+        nalgebra::Vector3::new(1.0, 0.013, 0.021),
+        nalgebra::Vector3::new(-0.017, 1.0, 0.031),
+        nalgebra::Vector3::new(0.023, -0.011, 1.0),
+    ];
+    let odd = rays
+        .iter()
+        .filter(|d| {
+            mesh.line_hits(p, &d.normalize())
+                .iter()
+                .filter(|(t, _)| *t > 0.0)
+                .count()
+                % 2
+                == 1
+        })
+        .count();
+    odd >= 2
+}
+
+/// Whether `p` is inside `mesh` by more than 0.5 mm: it and its six
+/// neighbours 0.5 mm away along the axes are inside. The planner lets
+/// shallower grazes pass (its 1 mm voxels round by as much; the fingers give).
+fn deep_inside_mesh(mesh: &omniscan_scene::mesh::Mesh, p: &nalgebra::Point3<f64>) -> bool {
+    let (lo, hi) = mesh.bounds();
+    let q = p.cast::<f32>();
+    if (0..3).any(|a| q[a] < lo[a] || q[a] > hi[a]) {
+        return false;
+    }
+    let steps = [-0.0005, 0.0005];
+    inside_mesh(mesh, p)
+        && (0..3).all(|axis| {
+            steps.iter().all(|&d| {
+                let mut q = *p;
+                q[axis] += d;
+                inside_mesh(mesh, &q)
+            })
+        })
+}
+
+/// Plans both arms' grasps of the builtin remote with `robot`'s gripper and
+/// checks, on the gripper's own meshes at each grasp's opening, that no
+/// vertex of the object is inside the gripper.
+fn assert_grasps_clear_the_gripper(name: &str, robot: &RobotSpec) {
+    let model = GripperModel::from_robot(robot, Path::new("/")).unwrap();
+    let object = builtin_object("remote").unwrap();
+    let settings = GraspSettings::for_gripper(&model, 7);
+    let (left, right) = plan_grasp_pair(&model, &object, &settings).unwrap();
+    for grasp in [left, right] {
+        let to_gripper = grasp.object_to_gripper();
+        // The planner lets the object reach 1.5 mm past the contacts (the
+        // fingers give).
+        let parts = model.parts(grasp.width_m + 0.003);
+        let inside = object
+            .positions
+            .iter()
+            .map(|v| to_gripper * v.cast::<f64>())
+            .filter(|p| {
+                parts.iter().any(|part| {
+                    deep_inside_mesh(part.mesh, &part.tcp_to_part.inverse_transform_point(p))
+                })
+            })
+            .count();
+        assert_eq!(
+            inside,
+            0,
+            "{name}: {inside} of the object's vertices inside the gripper at a {:.1} mm grasp",
+            grasp.width_m * 1e3
+        );
+    }
+}
+
+#[test]
+fn grasps_keep_the_object_out_of_urdf_grippers() {
+    let tmp = tempfile::tempdir().unwrap();
+    let prismatic = spec(&prismatic_hand(tmp.path()), "palm", Some("tcp"), None);
+    assert_grasps_clear_the_gripper("prismatic", &prismatic);
+    let revolute = spec(
+        &revolute_hand(tmp.path()),
+        "palm",
+        None,
+        Some([0.0, 0.0, 0.06]),
+    );
+    assert_grasps_clear_the_gripper("revolute", &revolute);
+}
+
 /// Simulates a scan held by `robot`, masks it kinematically and returns the
 /// mean IoU of (gripper, object) masks against the ground truth.
 fn scan_and_mask(dir: &Path, robot: RobotSpec) -> (f64, f64) {
@@ -313,6 +404,7 @@ fn the_yumi_urdf_opens_50_mm_and_its_scans_mask() {
     let opening = model.max_opening_m();
     // The YuMi's specification: 2 x 25 mm of finger travel.
     assert!((opening - 0.050).abs() < 0.003, "{opening}");
+    assert_grasps_clear_the_gripper("YuMi URDF", &robot);
     let (gripper, object) = scan_and_mask(&tmp.path().join("scan"), robot);
     assert!(
         gripper >= 0.97 && object >= 0.95,
@@ -341,6 +433,7 @@ fn the_robotiq_2f85_mjcf_opens_as_specified_and_its_scans_mask() {
     let model = GripperModel::from_robot(&robot, Path::new("/")).unwrap();
     let opening = model.max_opening_m();
     eprintln!("2F-85: widest opening {opening} m");
+    assert_grasps_clear_the_gripper("2F-85", &robot);
     // 85 mm is the stroke between the pads, which this model leaves out
     // (Menagerie's full model puts a pad of about 7 mm on each fingertip):
     // the bare fingertips open that much wider.

@@ -19,6 +19,7 @@ use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use omniscan_core::capture::RobotSpec;
 
 use crate::SceneError;
+use crate::collision::{CollisionPart, Solid};
 use crate::mesh::{Material, Mesh, MeshBuilder};
 use crate::robot::RobotGripper;
 
@@ -328,8 +329,66 @@ fn beam(b: &mut MeshBuilder, from: [f32; 2], to: [f32; 2], thickness: f32, y0: f
     }
 }
 
-/// Axis-aligned boxes (in the TCP frame) that the gripper occupies at a given
-/// opening: used to test grasps for collisions. Each is (min, max).
+impl GripperModel {
+    /// The gripper's parts for collision tests with its pads `opening`
+    /// apart (metres): for the YuMi, the boxes of [`gripper_boxes`]; for
+    /// another robot, its link meshes' voxels ([`crate::collision`]).
+    pub fn collision_parts(&self, opening: f64) -> Vec<CollisionPart<'_>> {
+        match &self.kind {
+            GripperKind::Robot(robot) => robot.collision_parts(opening),
+            GripperKind::Yumi(_) => gripper_boxes(opening)
+                .into_iter()
+                .enumerate()
+                .map(|(i, (lo, hi))| CollisionPart {
+                    tcp_to_part: Isometry3::identity(),
+                    solid: Solid::Cuboid { lo, hi },
+                    finger: i > 0,
+                })
+                .collect(),
+        }
+    }
+
+    /// Points on the finger pads (TCP frame) with the pads `opening` apart:
+    /// where the fingers touch a held object. For another robot than the
+    /// YuMi, the surface points of its moving links within 2 mm of the pad
+    /// planes x = ±opening/2 (all their surface points if none are).
+    pub fn pad_points(&self, opening: f64) -> Vec<Point3<f64>> {
+        if self.robot().is_none() {
+            return yumi_pad_points(opening);
+        }
+        let fingers: Vec<Point3<f64>> = self
+            .collision_parts(opening)
+            .iter()
+            .filter(|part| part.finger)
+            .flat_map(|part| part.surface_points())
+            .collect();
+        let on_pads: Vec<Point3<f64>> = fingers
+            .iter()
+            .filter(|p| (p.x.abs() - 0.5 * opening).abs() < 0.002)
+            .copied()
+            .collect();
+        if on_pads.is_empty() { fingers } else { on_pads }
+    }
+}
+
+/// The YuMi's pads in its TCP frame for an opening, as points.
+fn yumi_pad_points(opening: f64) -> Vec<Point3<f64>> {
+    let z0 = FINGER_MOUNT_M - TCP_FROM_BASE_M;
+    let mut pts = Vec::new();
+    for side in [-1.0, 1.0] {
+        for i in 0..=6 {
+            for j in 0..=4 {
+                let y = -0.5 * FINGER_WIDTH_M + FINGER_WIDTH_M * j as f64 / 4.0;
+                let z = z0 + FINGER_LENGTH_M * i as f64 / 6.0;
+                pts.push(Point3::new(side * 0.5 * opening, y, z));
+            }
+        }
+    }
+    pts
+}
+
+/// Axis-aligned boxes (in the TCP frame) that the YuMi gripper occupies at a
+/// given opening: used to test grasps for collisions. Each is (min, max).
 pub fn gripper_boxes(opening: f64) -> Vec<(Point3<f64>, Point3<f64>)> {
     let q = 0.5 * opening;
     let z_mount = FINGER_MOUNT_M - TCP_FROM_BASE_M;

@@ -7,6 +7,7 @@
 //! depend on the simulator.
 
 pub mod canvas;
+pub mod collision;
 pub mod gripper;
 pub mod loaders;
 pub mod mesh;

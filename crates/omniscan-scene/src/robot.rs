@@ -23,6 +23,7 @@ use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use omniscan_core::capture::RobotSpec;
 
 use crate::SceneError;
+use crate::collision::{CollisionPart, Solid, Voxels};
 use crate::mesh::{Material, Mesh, MeshBuilder};
 
 /// How a finger joint moves.
@@ -113,6 +114,17 @@ pub struct RobotGripper {
     openings: Vec<(f64, f64)>,
     /// Whether share 0 is the joints' lower limit (else the upper).
     open_at_upper: bool,
+    /// Each mesh's voxels in its link's frame, for collision tests.
+    volumes: Vec<LinkVolume>,
+}
+
+/// A link mesh's voxels in the link's own frame, and whether the link moves
+/// with the fingers (else it is part of the palm).
+#[derive(Debug, Clone)]
+struct LinkVolume {
+    link: String,
+    voxels: Voxels,
+    moves: bool,
 }
 
 /// Poses from the URDF's `xyz`/`rpy` (fixed-axis roll, pitch, yaw).
@@ -225,10 +237,32 @@ impl RobotGripper {
             closures: tree.closures,
             openings: Vec::new(),
             open_at_upper: true,
+            volumes: Vec::new(),
         };
         gripper.tcp_in_root = gripper.tcp(spec).map_err(&fail)?;
         gripper.measure_openings().map_err(&fail)?;
+        gripper.volumes = gripper.link_volumes();
         Ok(gripper)
+    }
+
+    /// The voxels of every non-empty mesh; a link moves if its pose differs
+    /// between the closed and the open gripper.
+    fn link_volumes(&self) -> Vec<LinkVolume> {
+        let (closed, open) = (self.link_poses(0.0), self.link_poses(1.0));
+        self.meshes
+            .iter()
+            .filter(|m| !m.mesh.positions.is_empty())
+            .map(|m| {
+                let (a, b) = (closed[m.link.as_str()], open[m.link.as_str()]);
+                let moves = (a.translation.vector - b.translation.vector).norm() > 1e-9
+                    || a.rotation.angle_to(&b.rotation) > 1e-9;
+                LinkVolume {
+                    link: m.link.clone(),
+                    voxels: Voxels::of_mesh(&m.mesh),
+                    moves,
+                }
+            })
+            .collect()
     }
 
     fn tcp(&self, spec: &RobotSpec) -> Result<Isometry3<f64>, String> {
@@ -485,6 +519,20 @@ impl RobotGripper {
         let k = t.partition_point(|(s, _)| *s < share).clamp(1, t.len() - 1);
         let ((s0, g0), (s1, g1)) = (t[k - 1], t[k]);
         Some(g0 + (g1 - g0) * (share - s0) / (s1 - s0))
+    }
+
+    /// Every link mesh's voxels placed in the TCP frame with the fingers
+    /// `opening_m` apart.
+    pub fn collision_parts(&self, opening_m: f64) -> Vec<CollisionPart<'_>> {
+        let poses = self.link_poses(self.joint_share(opening_m));
+        self.volumes
+            .iter()
+            .map(|v| CollisionPart {
+                tcp_to_part: poses[v.link.as_str()],
+                solid: Solid::Voxels(&v.voxels),
+                finger: v.moves,
+            })
+            .collect()
     }
 
     /// Every link's geometry in the TCP frame with the fingers `opening_m` apart.

@@ -378,14 +378,8 @@ impl Simulation {
             (None, Some(dir)) => GripperModel::from_yumi_dir(dir)?,
             (None, None) => GripperModel::builtin(),
         };
-        let settings = GraspSettings {
-            candidates: 600,
-            friction_cone_rad: 20f64.to_radians(),
-            min_width_m: 0.002,
-            max_width_m: gripper.max_opening_m() - 0.004,
-            seed: config.seed ^ 0x6a5b,
-        };
-        let (left_grasp, right_grasp) = plan_grasp_pair(&object.mesh, &settings)?;
+        let settings = GraspSettings::for_gripper(&gripper, config.seed ^ 0x6a5b);
+        let (left_grasp, right_grasp) = plan_grasp_pair(&gripper, &object.mesh, &settings)?;
         let defect = match defect_spec {
             Some(spec) => {
                 let avoid: Vec<Point3<f64>> = left_grasp
