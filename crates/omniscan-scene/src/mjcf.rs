@@ -3,9 +3,10 @@
 //! `roxmltree`. No maintained Rust crate reads MJCF, and a gripper needs a
 //! small part of it, written here:
 //!
-//! - `<compiler angle meshdir>`; `<default>` classes, nested, picked by an
+//! - `<compiler angle eulerseq meshdir>`; `<default>` classes, nested, picked by an
 //!   element's `class`, else the nearest `childclass` above it;
-//! - bodies (`pos`, `quat` or `axisangle`), each with at most one `hinge` or
+//! - bodies (`pos` and `quat`, `axisangle`, `euler` with the compiler's
+//!   `eulerseq`, `xyaxes` or `zaxis`), each with at most one `hinge` or
 //!   `slide` joint (`axis`, `pos`, `range`) or none (fixed), and `site`s
 //!   (usable as the TCP);
 //! - the geoms MuJoCo's viewer shows by default (groups 0-2): `mesh` (STL,
@@ -84,6 +85,8 @@ struct Reader<'a> {
     path: &'a Path,
     defaults: Defaults<'a>,
     radians: bool,
+    /// `<compiler eulerseq>`: three of x y z X Y Z.
+    eulerseq: String,
     meshdir: String,
     meshes: BTreeMap<String, (String, String)>,
     materials: BTreeMap<String, [f32; 3]>,
@@ -131,35 +134,100 @@ impl<'a> Reader<'a> {
         if self.radians { v } else { v.to_radians() }
     }
 
-    /// The frame `pos` + `quat` (w x y z) or `axisangle` of an element.
+    /// The frame of an element: `pos` and one of MJCF's orientations.
     fn frame(&self, node: Node<'a, 'a>, class: &str, what: &str) -> Result<Isometry3<f64>, String> {
         let pos = vec3(self.attr(node, class, "pos"), what, [0.0; 3])?;
-        let rotation = if let Some(q) = node.attribute("quat") {
-            match numbers(q, what)?.as_slice() {
-                [w, x, y, z] => {
-                    UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(*w, *x, *y, *z))
-                }
-                _ => return Err(format!("{what}: quat `{q}` needs four numbers")),
-            }
-        } else if let Some(a) = node.attribute("axisangle") {
-            match numbers(a, what)?.as_slice() {
-                [x, y, z, angle] => UnitQuaternion::from_axis_angle(
-                    &Unit::new_normalize(Vector3::new(*x, *y, *z)),
-                    self.angle(*angle),
-                ),
-                _ => return Err(format!("{what}: axisangle `{a}` needs four numbers")),
-            }
-        } else if node.attribute("euler").is_some()
-            || node.attribute("xyaxes").is_some()
-            || node.attribute("zaxis").is_some()
-        {
-            return Err(format!(
-                "{what}: give its orientation as quat or axisangle (euler, xyaxes and zaxis are not read)"
-            ));
-        } else {
-            UnitQuaternion::identity()
-        };
+        let rotation = self.orientation(node, what)?;
         Ok(Isometry3::from_parts(Translation3::from(pos), rotation))
+    }
+
+    /// An element's orientation from whichever of `quat` (w x y z),
+    /// `axisangle`, `euler` (in `<compiler eulerseq>`'s order: lower case
+    /// turns about the moving axes, upper case about the fixed ones),
+    /// `xyaxes` or `zaxis` it gives (at most one); identity if none.
+    fn orientation(&self, node: Node<'a, 'a>, what: &str) -> Result<UnitQuaternion<f64>, String> {
+        let given: Vec<(&str, Vec<f64>)> = ["quat", "axisangle", "euler", "xyaxes", "zaxis"]
+            .into_iter()
+            .filter_map(|name| node.attribute(name).map(|text| (name, text)))
+            .map(|(name, text)| Ok((name, numbers(text, what)?)))
+            .collect::<Result<_, String>>()?;
+        let small = |name: &str| format!("{what}: {name} is too small to give a direction");
+        let unit = |v: Vector3<f64>, name: &str| Unit::try_new(v, 1e-12).ok_or_else(|| small(name));
+        match given.as_slice() {
+            [] => Ok(UnitQuaternion::identity()),
+            [("quat", q)] if q.len() == 4 => {
+                let q = nalgebra::Quaternion::new(q[0], q[1], q[2], q[3]);
+                if q.norm() < 1e-12 {
+                    return Err(small("quat"));
+                }
+                Ok(UnitQuaternion::from_quaternion(q))
+            }
+            [("axisangle", a)] if a.len() == 4 => Ok(UnitQuaternion::from_axis_angle(
+                &unit(Vector3::new(a[0], a[1], a[2]), "axisangle")?,
+                self.angle(a[3]),
+            )),
+            [("euler", e)] if e.len() == 3 => {
+                let mut q = UnitQuaternion::identity();
+                for (axis, angle) in self.eulerseq.chars().zip(e) {
+                    let turn = UnitQuaternion::from_axis_angle(
+                        &match axis.to_ascii_lowercase() {
+                            'x' => Vector3::x_axis(),
+                            'y' => Vector3::y_axis(),
+                            _ => Vector3::z_axis(),
+                        },
+                        self.angle(*angle),
+                    );
+                    q = if axis.is_ascii_lowercase() {
+                        q * turn
+                    } else {
+                        turn * q
+                    };
+                }
+                Ok(q)
+            }
+            [("xyaxes", v)] if v.len() == 6 => {
+                let x = unit(Vector3::new(v[0], v[1], v[2]), "xyaxes' x")?;
+                let y = Vector3::new(v[3], v[4], v[5]);
+                let y = unit(y - x.into_inner() * x.dot(&y), "xyaxes' y")?;
+                let z = x.cross(&y);
+                Ok(UnitQuaternion::from_rotation_matrix(
+                    &nalgebra::Rotation3::from_matrix_unchecked(nalgebra::Matrix3::from_columns(
+                        &[x.into_inner(), y.into_inner(), z],
+                    )),
+                ))
+            }
+            [("zaxis", z)] if z.len() == 3 => {
+                let z = unit(Vector3::new(z[0], z[1], z[2]), "zaxis")?;
+                // The shortest turn from z to it; half a turn about x if opposite.
+                Ok(
+                    UnitQuaternion::rotation_between_axis(&Vector3::z_axis(), &z).unwrap_or_else(
+                        || {
+                            UnitQuaternion::from_axis_angle(
+                                &Vector3::x_axis(),
+                                std::f64::consts::PI,
+                            )
+                        },
+                    ),
+                )
+            }
+            [(name, v)] => Err(format!(
+                "{what}: {name} needs {} numbers, not {}",
+                match *name {
+                    "quat" | "axisangle" => 4,
+                    "xyaxes" => 6,
+                    _ => 3,
+                },
+                v.len()
+            )),
+            _ => Err(format!(
+                "{what}: give one orientation, not {}",
+                given
+                    .iter()
+                    .map(|(n, _)| *n)
+                    .collect::<Vec<_>>()
+                    .join(" and ")
+            )),
+        }
     }
 
     /// A visible geom's mesh in its body's frame; `None` for a hidden one.
@@ -380,6 +448,20 @@ fn find_body<'a>(node: Node<'a, 'a>, name: &str, class: &str) -> Option<(Node<'a
     None
 }
 
+/// `<compiler eulerseq>`, "xyz" when absent.
+fn euler_sequence(compiler: Option<Node>) -> Result<String, String> {
+    let seq = compiler
+        .and_then(|c| c.attribute("eulerseq"))
+        .unwrap_or("xyz");
+    if seq.len() == 3 && seq.chars().all(|c| "xyzXYZ".contains(c)) {
+        Ok(seq.to_string())
+    } else {
+        Err(format!(
+            "compiler: eulerseq `{seq}` is not three of x, y, z (turns about the moving axes) and X, Y, Z (about the fixed ones)"
+        ))
+    }
+}
+
 /// The gripper under body `root` of the MJCF `text` at `path`.
 pub(crate) fn tree(text: &str, path: &Path, root: &str) -> Result<Tree, String> {
     let doc = Document::parse(text).map_err(|e| format!("not readable XML: {e}"))?;
@@ -389,6 +471,7 @@ pub(crate) fn tree(text: &str, path: &Path, root: &str) -> Result<Tree, String> 
         path,
         defaults: Defaults::read(mujoco),
         radians: compiler.and_then(|c| c.attribute("angle")) == Some("radian"),
+        eulerseq: euler_sequence(compiler)?,
         meshdir: compiler
             .and_then(|c| c.attribute("meshdir"))
             .unwrap_or("")
@@ -536,9 +619,114 @@ fn mark_actuated(mujoco: Node, tree: &mut Tree) {
 
 #[cfg(test)]
 mod tests {
-    use omniscan_core::capture::RobotSpec;
+    use std::collections::BTreeMap;
+    use std::path::Path;
 
+    use nalgebra::{UnitQuaternion, Vector3};
+    use omniscan_core::capture::RobotSpec;
+    use roxmltree::Document;
+
+    use super::{Defaults, Reader};
     use crate::robot::RobotGripper;
+
+    /// The orientation a `<body ATTRS/>` gives, angles in degrees.
+    fn orientation(attrs: &str, eulerseq: &str) -> Result<UnitQuaternion<f64>, String> {
+        let xml = format!("<body {attrs}/>");
+        let doc = Document::parse(&xml).unwrap();
+        let reader = Reader {
+            path: Path::new("hand.xml"),
+            defaults: Defaults {
+                classes: BTreeMap::new(),
+            },
+            radians: false,
+            eulerseq: eulerseq.into(),
+            meshdir: String::new(),
+            meshes: BTreeMap::new(),
+            materials: BTreeMap::new(),
+        };
+        reader.orientation(doc.root_element(), "body b")
+    }
+
+    fn maps(q: UnitQuaternion<f64>, from: [f64; 3], to: [f64; 3]) -> bool {
+        (q * Vector3::from(from) - Vector3::from(to)).norm() < 1e-12
+    }
+
+    #[test]
+    fn orientations_follow_mujocos_conventions() {
+        let turn = |attrs: &str| orientation(attrs, "xyz").unwrap();
+        // About the moving axes, Ry(90°) then Rz(90°) after it: R = Ry Rz,
+        // and x -> Rz -> y -> Ry -> y.
+        assert!(maps(
+            turn(r#"euler="0 90 90""#),
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0]
+        ));
+        // About the fixed axes: R = Rz Ry, x -> Ry -> -z -> Rz -> -z.
+        let fixed = orientation(r#"euler="0 90 90""#, "XYZ").unwrap();
+        assert!(maps(fixed, [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]));
+        let quarter_about_z = [
+            r#"axisangle="0 0 2 90""#,
+            r#"quat="0.7071067811865476 0 0 0.7071067811865476""#,
+            r#"xyaxes="0 1 0 -1 0 0""#,
+            // y need not be orthogonal to x: its part along x is dropped.
+            r#"xyaxes="0 2 0 -1 5 0""#,
+            r#"euler="0 0 90""#,
+        ];
+        for attrs in quarter_about_z {
+            let q = turn(attrs);
+            assert!(maps(q, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]), "{attrs}");
+            assert!(maps(q, [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]), "{attrs}");
+        }
+        // zaxis: the shortest turn taking z there.
+        let q = turn(r#"zaxis="1 0 0""#);
+        assert!(maps(q, [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]));
+        assert!(maps(q, [0.0, 1.0, 0.0], [0.0, 1.0, 0.0]));
+        assert!(maps(
+            turn(r#"zaxis="0 0 -3""#),
+            [0.0, 0.0, 1.0],
+            [0.0, 0.0, -1.0]
+        ));
+        assert_eq!(turn(""), UnitQuaternion::identity());
+    }
+
+    #[test]
+    fn bad_orientations_are_refused_by_name() {
+        let e = orientation(r#"euler="0 90""#, "xyz").unwrap_err();
+        assert!(e.contains("body b: euler needs 3 numbers, not 2"), "{e}");
+        let e = orientation(r#"quat="1 0 0 0" euler="0 0 0""#, "xyz").unwrap_err();
+        assert!(
+            e.contains("give one orientation, not quat and euler"),
+            "{e}"
+        );
+        let e = orientation(r#"xyaxes="1 0 0 2 0 0""#, "xyz").unwrap_err();
+        assert!(e.contains("xyaxes' y is too small"), "{e}");
+        let e = orientation(r#"zaxis="0 0 0""#, "xyz").unwrap_err();
+        assert!(e.contains("zaxis is too small"), "{e}");
+        let dir = tempfile::tempdir().unwrap();
+        let text = hand("0.7 0.7 0.7 1", "slide").replace(
+            "<mujoco model=\"hand\">",
+            "<mujoco model=\"hand\"><compiler eulerseq=\"xyw\"/>",
+        );
+        let e = load(dir.path(), &text, "palm").unwrap_err();
+        assert!(
+            e.contains("hand.xml") && e.contains("eulerseq `xyw`"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn a_hand_reads_the_same_whichever_way_its_finger_is_turned() {
+        let dir = tempfile::tempdir().unwrap();
+        for turned in [
+            r#"euler="0 0 180""#,
+            r#"axisangle="0 0 1 180""#,
+            r#"xyaxes="-1 0 0 0 -1 0""#,
+        ] {
+            let text = hand("0.7 0.7 0.7 1", "slide").replace(r#"quat="0 0 0 1""#, turned);
+            let gripper = load(dir.path(), &text, "palm").unwrap();
+            assert!((gripper.max_opening_m() - 0.07).abs() < 1e-6, "{turned}");
+        }
+    }
 
     /// A parallel hand in MJCF: two slide fingers (boxes, half-sizes as MJCF
     /// gives them), the second coupled to the first by an equality, the
