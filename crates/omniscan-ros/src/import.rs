@@ -185,8 +185,27 @@ impl Recording {
         Ok(())
     }
 
-    fn queue(&mut self, path: PathBuf, image: Decoded) -> Result<(), RosError> {
-        self.pending.push((path, image));
+    /// Records a decoded image as the next of its kind (`images/` or
+    /// `depth/NNNNNN.png`) and queues it to be written under `staging`.
+    fn stage(
+        &mut self,
+        staging: &Path,
+        stamp_ns: i64,
+        frame_id: String,
+        image: Decoded,
+    ) -> Result<(), RosError> {
+        let (list, folder, size) = match &image {
+            Decoded::Rgb(rgb) => (&mut self.images, "images", (rgb.width, rgb.height)),
+            Decoded::Depth(depth) => (&mut self.depths, "depth", (depth.width, depth.height)),
+        };
+        let path = format!("{folder}/{:06}.png", list.len());
+        list.push(Stamped {
+            stamp_ns,
+            frame_id,
+            path: path.clone(),
+            size,
+        });
+        self.pending.push((staging.join(path), image));
         if self.pending.len() >= PENDING_IMAGES {
             self.write_pending()?;
         }
@@ -369,27 +388,11 @@ fn read_message(
             &["sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"],
         )?;
         let (stamp, frame_id, image) = decode_colour(m).map_err(decode_error)?;
-        let path = format!("images/{:06}.png", rec.images.len());
-        let size = (image.width, image.height);
-        rec.queue(staging.join(&path), Decoded::Rgb(image))?;
-        rec.images.push(Stamped {
-            stamp_ns: stamp,
-            frame_id,
-            path,
-            size,
-        });
+        rec.stage(staging, stamp, frame_id, Decoded::Rgb(image))?;
     } else if m.topic == s.depth_topic {
         expect_type(bag, m, &["sensor_msgs/msg/Image"])?;
         let (stamp, frame_id, depth) = decode_depth(m.data).map_err(decode_error)?;
-        let path = format!("depth/{:06}.png", rec.depths.len());
-        let size = (depth.width, depth.height);
-        rec.queue(staging.join(&path), Decoded::Depth(depth))?;
-        rec.depths.push(Stamped {
-            stamp_ns: stamp,
-            frame_id,
-            path,
-            size,
-        });
+        rec.stage(staging, stamp, frame_id, Decoded::Depth(depth))?;
     } else if m.topic == s.camera_info_topic {
         expect_type(bag, m, &["sensor_msgs/msg/CameraInfo"])?;
         let info: CameraInfo = msgs::decode(m.data).map_err(decode_error)?;
