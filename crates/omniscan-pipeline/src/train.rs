@@ -228,105 +228,40 @@ pub fn train(
     validate(settings)?;
     omniscan_splat::ply::ModelFormat::writable(out)?;
     let _lock = omniscan_core::lock::OutputLock::file(out, "train")?;
-    let right_to_left = settings.merge.read(settings.arm)?;
-    if let Some(path) = &settings.init_right
-        && !matches!(settings.arm, ArmSet::Both)
-    {
-        bail!(
-            "--init-right {}: only a model of both arms (--arm both) starts from the right arm's points",
-            path.display()
-        );
-    }
-    let (source, view_set) = view_source(
-        capture,
-        settings.arm,
-        right_to_left,
-        settings.downscale,
-        settings.use_ground_truth_masks,
-    )?;
-    if !settings.no_memory_check {
-        check_view_memory(&source, settings.downscale, crate::memory::available())?;
-    }
-    progress.start("reading", source.len() as u64, "views");
-    let all = source.load_packed_each(&(0..source.len()).collect::<Vec<_>>(), &|| {
-        progress.advance()
-    })?;
-    progress.finish();
-    // The merge the views were brought together by, for --init-right and the report.
-    let merged_by = match view_set {
-        Some(ViewSet::Merged { right_to_left }) => Some(right_to_left),
-        _ => None,
-    };
-    if settings.init_right.is_some() && merged_by.is_none() {
-        bail!("--init-right needs a capture's views of both arms");
-    }
-    let appearance = match settings.appearance {
-        AppearanceChoice::Auto if view_set.is_some() => Appearance::FixedRig,
-        AppearanceChoice::Auto | AppearanceChoice::ViewDirection => Appearance::ViewDirection,
-        AppearanceChoice::FixedRig => Appearance::FixedRig,
-    };
-    let (train_views, test_views) =
-        split_held_out_from(all, settings.hold_out_every, settings.hold_out_first);
-    let (train_indices, test_indices) = split_held_out_from(
-        (0..source.len()).collect(),
+    let loaded = load_views(capture, settings, progress)?;
+    let (train_views, test_views) = split_held_out_from(
+        loaded.views,
         settings.hold_out_every,
         settings.hold_out_first,
     );
-    let (groups, group_names) = view_groups(&source);
+    let (train_indices, test_indices) = split_held_out_from(
+        (0..loaded.source.len()).collect(),
+        settings.hold_out_every,
+        settings.hold_out_first,
+    );
+    let (groups, group_names) = view_groups(&loaded.source);
     let train_groups: Vec<usize> = train_indices.iter().map(|&i| groups[i]).collect();
     let start = Instant::now();
     let config = trainer_config(settings)?;
     let renderer = training_renderer(settings, progress)?;
-    // A nerfstudio set's own points (`ply_file_path`) start it, as in
-    // nerfstudio, unless --init names others.
-    let init = settings
-        .init
-        .clone()
-        .or_else(|| source.initial_points().map(PathBuf::from));
-    if settings.init.is_none()
-        && let Some(points) = &init
-    {
-        progress.note(&format!(
-            "starting from the photo set's points {} (its ply_file_path)",
-            points.display()
-        ));
-    }
+    let init = initial_points(settings, &loaded.source, progress);
     let checkpoint = checkpoint_path(out);
     let start_from = if settings.resume {
-        resume_from(&checkpoint, appearance, settings.antialiased, progress)?
+        resume_from(
+            &checkpoint,
+            loaded.appearance,
+            settings.antialiased,
+            progress,
+        )?
     } else {
-        let mut splats = initial(settings, &init, merged_by, &train_views)?;
+        let mut splats = initial(settings, &init, loaded.merged_by, &train_views)?;
         splats.antialiased = settings.antialiased;
-        splats.appearance = appearance;
+        splats.appearance = loaded.appearance;
         Start::Fresh(splats)
     };
-    let mut save = |state: &omniscan_splat::train::TrainState| {
-        omniscan_splat::checkpoint::save(state, &checkpoint)
-    };
-    progress.start("training", settings.steps as u64, "steps");
-    let mut recent = Vec::new();
     let mut trainer = Trainer::new(&train_views, start_from, &config, &renderer)?
         .with_pose_groups(&train_groups)?;
-    run_to_end(
-        &mut trainer,
-        Some(Checkpoints {
-            every: settings.checkpoint_every,
-            save: &mut save,
-        }),
-        &mut |step, loss, psnr| {
-            recent.push(psnr);
-            if recent.len() > 20 {
-                recent.remove(0);
-            }
-            if step % 10 == 0 {
-                progress.message(&format!(
-                    "loss {loss:.4}, PSNR {:.2} dB",
-                    recent.iter().sum::<f64>() / recent.len() as f64
-                ));
-            }
-            progress.set(step as u64);
-        },
-    )?;
+    run_with_progress(&mut trainer, settings, &checkpoint, progress)?;
     let learned = trainer.pose_corrections();
     let model = trainer.finish()?;
     progress.finish();
@@ -349,7 +284,7 @@ pub fn train(
             };
             let fitting = (&config, settings.poses.pose_fit_steps);
             let (train_views, test_views, report) = at_corrected_poses(
-                (&model, &source),
+                (&model, &loaded.source),
                 &split,
                 (train_views, test_views),
                 &learned,
@@ -372,11 +307,125 @@ pub fn train(
         seconds: start.elapsed().as_secs_f64(),
         train_views: train_views.len(),
         test_views: test_views.len(),
-        settings: trained_with(settings, &config, &model, &init, merged_by),
+        settings: trained_with(settings, &config, &model, &init, loaded.merged_by),
         test,
         train: fit,
         poses,
     })
+}
+
+/// A capture's views as training reads them.
+struct LoadedViews {
+    source: ViewSource,
+    views: Vec<PackedView>,
+    /// The merge the views were brought together by (both arms).
+    merged_by: Option<omniscan_core::Pose>,
+    appearance: Appearance,
+}
+
+/// Reads the views `settings` pick from `capture`, after checking that
+/// they fit in memory and that `--init-right` has both arms to start.
+fn load_views(
+    capture: &Path,
+    settings: &TrainSettings,
+    progress: &dyn Progress,
+) -> Result<LoadedViews> {
+    let right_to_left = settings.merge.read(settings.arm)?;
+    if let Some(path) = &settings.init_right
+        && !matches!(settings.arm, ArmSet::Both)
+    {
+        bail!(
+            "--init-right {}: only a model of both arms (--arm both) starts from the right arm's points",
+            path.display()
+        );
+    }
+    let (source, view_set) = view_source(
+        capture,
+        settings.arm,
+        right_to_left,
+        settings.downscale,
+        settings.use_ground_truth_masks,
+    )?;
+    if !settings.no_memory_check {
+        check_view_memory(&source, settings.downscale, crate::memory::available())?;
+    }
+    let merged_by = match view_set {
+        Some(ViewSet::Merged { right_to_left }) => Some(right_to_left),
+        _ => None,
+    };
+    if settings.init_right.is_some() && merged_by.is_none() {
+        bail!("--init-right needs a capture's views of both arms");
+    }
+    progress.start("reading", source.len() as u64, "views");
+    let views = source.load_packed_each(&(0..source.len()).collect::<Vec<_>>(), &|| {
+        progress.advance()
+    })?;
+    progress.finish();
+    let appearance = match settings.appearance {
+        AppearanceChoice::Auto if view_set.is_some() => Appearance::FixedRig,
+        AppearanceChoice::Auto | AppearanceChoice::ViewDirection => Appearance::ViewDirection,
+        AppearanceChoice::FixedRig => Appearance::FixedRig,
+    };
+    Ok(LoadedViews {
+        source,
+        views,
+        merged_by,
+        appearance,
+    })
+}
+
+/// The points a fresh model starts from: `--init`, else a nerfstudio set's
+/// own (`ply_file_path`, as nerfstudio does), else none.
+fn initial_points(
+    settings: &TrainSettings,
+    source: &ViewSource,
+    progress: &dyn Progress,
+) -> Option<PathBuf> {
+    if settings.init.is_some() {
+        return settings.init.clone();
+    }
+    let points = source.initial_points().map(PathBuf::from)?;
+    progress.note(&format!(
+        "starting from the photo set's points {} (its ply_file_path)",
+        points.display()
+    ));
+    Some(points)
+}
+
+/// Runs `trainer` to its last step, checkpointing into `checkpoint` and
+/// showing the loss and the PSNR averaged over the last 20 steps.
+fn run_with_progress(
+    trainer: &mut Trainer<'_, PackedView>,
+    settings: &TrainSettings,
+    checkpoint: &Path,
+    progress: &dyn Progress,
+) -> Result<()> {
+    let mut save = |state: &omniscan_splat::train::TrainState| {
+        omniscan_splat::checkpoint::save(state, checkpoint)
+    };
+    progress.start("training", settings.steps as u64, "steps");
+    let mut recent = std::collections::VecDeque::new();
+    run_to_end(
+        trainer,
+        Some(Checkpoints {
+            every: settings.checkpoint_every,
+            save: &mut save,
+        }),
+        &mut |step, loss, psnr| {
+            recent.push_back(psnr);
+            if recent.len() > 20 {
+                recent.pop_front();
+            }
+            if step % 10 == 0 {
+                progress.message(&format!(
+                    "loss {loss:.4}, PSNR {:.2} dB",
+                    recent.iter().sum::<f64>() / recent.len() as f64
+                ));
+            }
+            progress.set(step as u64);
+        },
+    )?;
+    Ok(())
 }
 
 /// Refuses settings that no training can run with, naming the flag.
