@@ -222,6 +222,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                     sh_rest: omniscan_splat::train::SH_REST_LR,
                     mcmc: None,
                     absolute_gradients: false,
+                    camera_gradient: false,
                 };
                 // Sent once, as training keeps its views' targets on the device.
                 let kept = device.upload_target(&view)?;

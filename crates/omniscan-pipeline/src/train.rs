@@ -503,13 +503,6 @@ fn trainer_config(settings: &TrainSettings) -> Result<TrainConfig> {
 /// GPU that can render but not train.
 fn training_renderer(settings: &TrainSettings, progress: &dyn Progress) -> Result<Renderer> {
     let mut renderer = match Renderer::new(settings.backend)? {
-        Renderer::Gpu(gpu) if settings.backend == Backend::Auto && settings.poses.refine_poses => {
-            progress.note(&format!(
-                "pose refinement runs on the CPU only; training on the CPU rather than {}",
-                gpu.adapter()
-            ));
-            Renderer::Cpu
-        }
         Renderer::Gpu(gpu) if settings.backend == Backend::Auto && !gpu.can_train() => {
             progress.note(&format!(
                 "{} cannot run the backward pass (no subgroup operations); training on the CPU",

@@ -118,12 +118,6 @@ impl<'a, V: TrainingView> Trainer<'a, V> {
                 centre: rotation_centre(views.iter().map(|v| v.camera())).into(),
             }),
         };
-        if config.pose.is_some() && renderer.is_gpu() {
-            return Err(SplatError::Invalid(
-                "pose refinement runs on the CPU renderer only, for now: train with the CPU backend"
-                    .into(),
-            ));
-        }
         match start {
             Start::Fresh(s) => trainer.init(s)?,
             Start::Resume(state) => trainer.resume(*state)?,
@@ -287,6 +281,7 @@ impl<'a, V: TrainingView> Trainer<'a, V> {
                 .strategy
                 .mcmc_step(&self.splats, &self.config, self.extent, means_lr, step),
             absolute_gradients: self.config.absolute_gradients,
+            camera_gradient: self.pose.is_some(),
         };
         let (loss, psnr) = if self.device.is_some() {
             self.gpu_step(step, index, background, &rates)?
@@ -325,7 +320,11 @@ impl<'a, V: TrainingView> Trainer<'a, V> {
         let (device, targets) = self.device.as_mut().expect("checked by the caller");
         let view = &self.views[index];
         let target = targets.target(gpu, index, view, &mut self.scratch)?;
-        let frame = gpu.forward_state(device, view.camera(), &settings, degree, false)?;
+        let camera = match &self.pose {
+            Some(refiner) => refiner.camera(index, view.camera()),
+            None => *view.camera(),
+        };
+        let frame = gpu.forward_state(device, &camera, &settings, degree, false)?;
         let target = LossTarget {
             target,
             background,
@@ -333,6 +332,10 @@ impl<'a, V: TrainingView> Trainer<'a, V> {
             lambda_opacity: self.config.lambda_opacity,
         };
         let report = gpu.train_step(device, &frame, &target, rates, step as i32)?;
+        if let (Some(refiner), Some(gradient)) = (&mut self.pose, &report.camera) {
+            let extent = f64::from(self.extent);
+            refiner.step(index, &camera, gradient, step, self.config.steps, extent);
+        }
         Ok((report.loss, report.psnr))
     }
 

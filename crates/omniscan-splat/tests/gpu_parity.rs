@@ -263,7 +263,7 @@ fn relative<const K: usize>(cpu: &[[f32; K]], gpu: &[[f32; K]]) -> f32 {
 #[test]
 #[ignore = "needs a Vulkan device (lavapipe: apt-get install mesa-vulkan-drivers)"]
 fn gpu_gradients_match_the_cpu_reference() {
-    use omniscan_splat::backward::backward;
+    use omniscan_splat::backward::{backward, backward_with_camera};
     use omniscan_splat::raster::{project, rasterize};
     let gpu = renderer();
     for (degree, mode, appearance) in [
@@ -327,6 +327,24 @@ fn gpu_gradients_match_the_cpu_reference() {
                 "{label}: {name} differs by {e:e} of its largest magnitude"
             );
         }
+        // The camera gradient (pose refinement), summed over the Gaussians.
+        let (_, cpu_camera) = backward_with_camera(&g, &cam, &settings, &p, &d_rgb, &d_alpha);
+        let gpu_camera = gpu.camera_gradient(&frame, &d_rgb, &d_alpha).unwrap();
+        let (want, got) = (
+            [cpu_camera.translation, cpu_camera.rotation].concat(),
+            [gpu_camera.translation, gpu_camera.rotation].concat(),
+        );
+        let largest = want.iter().fold(0f64, |m, v| m.max(v.abs()));
+        let worst = want
+            .iter()
+            .zip(&got)
+            .fold(0f64, |m, (a, b)| m.max((a - b).abs()));
+        eprintln!("{label}: camera gradient {want:?} vs {got:?}");
+        assert!(largest > 0.0);
+        assert!(
+            worst < 1e-3 * largest,
+            "{label}: the camera gradient differs by {worst:e} (largest {largest:e}): {want:?} vs {got:?}"
+        );
     }
 }
 
@@ -392,6 +410,7 @@ fn frozen(
         sh_rest: 0.0,
         mcmc,
         absolute_gradients: false,
+        camera_gradient: false,
     }
 }
 
@@ -482,6 +501,54 @@ fn training_on_the_gpu_follows_the_cpu_reference() {
             .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
         assert!(worst < 1e-3, "{label}: means drifted apart by {worst}");
         assert!(cpu_losses.last() < cpu_losses.first(), "the loss falls");
+    }
+}
+
+/// Pose refinement on the device: views whose recorded poses are off by
+/// 2 cm, the corrections stepped from the device's camera
+/// gradient, follow the CPU trainer's, step for step.
+#[test]
+#[ignore = "needs a Vulkan device (lavapipe: apt-get install mesa-vulkan-drivers)"]
+fn pose_refinement_on_the_gpu_follows_the_cpu_reference() {
+    use omniscan_splat::backend::Renderer;
+    use omniscan_splat::pose::PoseConfig;
+    use omniscan_splat::train::{Start, TrainConfig};
+    use omniscan_splat::trainer::{Trainer, run_to_end};
+    let mut views = training_views(&[(64, 48); 4]);
+    // Record two of the views 2 cm off along x.
+    for view in views.iter_mut().skip(1).step_by(2) {
+        view.camera.viewmat[0][3] += 0.02;
+    }
+    let config = TrainConfig {
+        pose: Some(PoseConfig {
+            from_step: 0,
+            rotation_lr: 5e-3,
+            translation_lr: 2e-2,
+            ..PoseConfig::default()
+        }),
+        ..densifying(30)
+    };
+    let run = |renderer: &Renderer| {
+        let mut losses = Vec::new();
+        let mut trainer =
+            Trainer::new(&views, Start::Fresh(training_start()), &config, renderer).unwrap();
+        run_to_end(&mut trainer, None, &mut |_, loss, _| losses.push(loss)).unwrap();
+        (losses, trainer.pose_corrections().unwrap())
+    };
+    let (cpu_losses, cpu) = run(&Renderer::Cpu);
+    let (gpu_losses, gpu) = run(&Renderer::Gpu(Box::new(renderer())));
+    assert_losses_follow("pose refinement", &cpu_losses, &gpu_losses);
+    let moved = cpu
+        .views
+        .iter()
+        .map(|c| c.translation_m.iter().map(|t| t.abs()).fold(0.0, f64::max))
+        .fold(0.0, f64::max);
+    assert!(moved > 1e-4, "the corrections moved: {moved} m");
+    for (c, g) in cpu.views.iter().zip(&gpu.views) {
+        let apart = (0..3)
+            .map(|a| (c.translation_m[a] - g.translation_m[a]).abs())
+            .fold(0.0, f64::max);
+        assert!(apart < 0.1 * moved, "{c:?} vs {g:?}");
     }
 }
 

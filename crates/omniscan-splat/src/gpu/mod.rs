@@ -41,6 +41,7 @@ const SORT: &str = include_str!("sort.wgsl");
 const RASTERIZE: &str = include_str!("rasterize.wgsl");
 const RASTERIZE_BACKWARD: &str = include_str!("rasterize_backward.wgsl");
 const PROJECT_BACKWARD: &str = include_str!("project_backward.wgsl");
+const CAMERA_SUM: &str = include_str!("camera_sum.wgsl");
 
 const GROUP: u32 = 256;
 const SCAN_BLOCK: u32 = 1024;
@@ -71,13 +72,42 @@ pub struct GpuRenderer {
     tile_ranges: wgpu::ComputePipeline,
     rasterize: wgpu::ComputePipeline,
     /// The backward kernels, when the device has subgroup operations.
-    backward: Option<(wgpu::ComputePipeline, wgpu::ComputePipeline)>,
+    backward: Option<BackwardKernels>,
     /// The optimiser's kernels (with the backward ones).
     optimise: Option<training::OptimiseKernels>,
     /// The training loss's working buffers, kept for the next step.
     loss_buffers: std::sync::Mutex<Option<training::LossBuffers>>,
     /// How many bytes of the views' loss targets training keeps on the device.
     view_memory: u64,
+}
+
+/// The backward pass's kernels: the compositing's, the projection's, and
+/// the sum of the camera gradient's shares.
+pub(crate) struct BackwardKernels {
+    raster: wgpu::ComputePipeline,
+    project: wgpu::ComputePipeline,
+    camera_sum: wgpu::ComputePipeline,
+}
+
+/// The camera gradient's partial sums (6 per workgroup of 256 Gaussians) a
+/// backward pass records, when asked for.
+pub(crate) struct CameraPartials {
+    pub buffer: wgpu::Buffer,
+    pub words: u64,
+}
+
+/// Adds up the partial sums of the camera gradient, in f64, in order.
+pub(crate) fn camera_gradient_of(words: &[u32]) -> crate::backward::CameraGradient {
+    let mut sum = [0.0f64; 6];
+    for chunk in words.chunks_exact(6) {
+        for (s, w) in sum.iter_mut().zip(chunk) {
+            *s += f64::from(f32::from_bits(*w));
+        }
+    }
+    crate::backward::CameraGradient {
+        translation: [sum[0], sum[1], sum[2]],
+        rotation: [sum[3], sum[4], sum[5]],
+    }
 }
 
 /// Gaussians on the device, as the kernels read them: activated scales and
@@ -264,14 +294,24 @@ impl GpuRenderer {
             let inner = device.push_error_scope(wgpu::ErrorFilter::Validation);
             let raster = pipeline(&module("rasterize backward", RASTERIZE_BACKWARD), "main");
             let project = pipeline(&module("project backward", PROJECT_BACKWARD), "main");
+            let camera_sum = pipeline(&module("camera gradient sum", CAMERA_SUM), "main");
             let kernels = training::OptimiseKernels::new(&device);
             match pollster::block_on(inner.pop()) {
-                None => backward = Some((raster, project, kernels)),
+                None => {
+                    backward = Some((
+                        BackwardKernels {
+                            raster,
+                            project,
+                            camera_sum,
+                        },
+                        kernels,
+                    ))
+                }
                 Some(e) => tracing::warn!("GPU backend: no backward pass on this device: {e}"),
             }
         }
         let (backward, optimise) = match backward {
-            Some((raster, project, kernels)) => (Some((raster, project)), Some(kernels)),
+            Some((backward, kernels)) => (Some(backward), Some(kernels)),
             None => (None, None),
         };
         let renderer = GpuRenderer {
@@ -906,22 +946,57 @@ impl GpuRenderer {
             .collect();
         let d_image = self.storage("image gradients", &d_image);
         let mut encoder = self.device.create_command_encoder(&Default::default());
-        let (grads2d, outputs) = self.record_backward_from(&mut encoder, frame, &d_image, true)?;
+        let (grads2d, outputs, _) =
+            self.record_backward_from(&mut encoder, frame, &d_image, true, false)?;
         Ok((encoder, grads2d, outputs))
+    }
+
+    /// The gradient of the loss with respect to a motion of `frame`'s
+    /// camera (as [`crate::backward::backward_with_camera`] returns it),
+    /// given dL/d(rgb) and dL/d(alpha) per pixel of its render.
+    pub fn camera_gradient(
+        &self,
+        frame: &GpuFrame,
+        d_rgb: &[[f32; 3]],
+        d_alpha: &[f32],
+    ) -> Result<crate::backward::CameraGradient, SplatError> {
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let d_image: Vec<f32> = d_rgb
+            .iter()
+            .zip(d_alpha)
+            .flat_map(|(c, a)| [c[0], c[1], c[2], *a])
+            .collect();
+        let d_image = self.storage("image gradients", &d_image);
+        let mut encoder = self.device.create_command_encoder(&Default::default());
+        let (_, _, partials) =
+            self.record_backward_from(&mut encoder, frame, &d_image, false, true)?;
+        let partials = partials.expect("asked for");
+        let words = self.submit_and_read(encoder, &partials.buffer, 4 * partials.words)?;
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(gpu_error("the camera gradient failed", e));
+        }
+        Ok(camera_gradient_of(&words))
     }
 
     /// Records the backward pass of `frame` given dL/d(rgb, alpha) per pixel
     /// (4 floats) in `d_image`: the 2D gradients (`GRADS2D_FLOATS` per
-    /// Gaussian, the absolute sums only if `absolute`) and the parameter
-    /// gradients (means, quaternions, scales, opacities, colour coefficients).
+    /// Gaussian, the absolute sums only if `absolute`), the parameter
+    /// gradients (means, quaternions, scales, opacities, colour coefficients)
+    /// and, if `camera`, the camera gradient's partial sums.
     pub(crate) fn record_backward_from(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         frame: &GpuFrame,
         d_image: &wgpu::Buffer,
         absolute: bool,
-    ) -> Result<(wgpu::Buffer, [wgpu::Buffer; 5]), SplatError> {
-        let Some((raster_backward, project_backward)) = &self.backward else {
+        camera: bool,
+    ) -> Result<(wgpu::Buffer, [wgpu::Buffer; 5], Option<CameraPartials>), SplatError> {
+        let Some(BackwardKernels {
+            raster: raster_backward,
+            project: project_backward,
+            camera_sum,
+        }) = &self.backward
+        else {
             return Err(SplatError::Invalid(format!(
                 "GPU backend: {} has no subgroup operations, which the backward pass needs; train with --backend cpu",
                 self.adapter()
@@ -938,6 +1013,8 @@ impl GpuRenderer {
             self.zeroed("colour gradients", 3 * k * n),
         ];
         encoder.clear_buffer(&grads2d, 0, None);
+        // One float: the kernel leaves the camera gradient alone.
+        let d_camera = self.zeroed("camera gradient shares", if camera { 6 * n } else { 1 });
         let options = self.uniform("backward options", &[u32::from(absolute), 0, 0, 0]);
         let group = self.bind(
             raster_backward,
@@ -971,15 +1048,20 @@ impl GpuRenderer {
                 (10, &outputs[2]),
                 (11, &outputs[3]),
                 (12, &outputs[4]),
+                (13, &d_camera),
             ],
         );
-        Self::dispatch(
-            encoder,
-            project_backward,
-            &group,
-            grid((n as u32).div_ceil(GROUP)),
-        );
-        Ok((grads2d, outputs))
+        let groups = grid((n as u32).div_ceil(GROUP));
+        Self::dispatch(encoder, project_backward, &group, groups);
+        let partials = camera.then(|| {
+            let words = 6 * u64::from(groups.0) * u64::from(groups.1);
+            let buffer = self.zeroed("camera gradient partial sums", words);
+            let count = self.uniform("gaussians", &[n as u32, 0, 0, 0]);
+            let group = self.bind(camera_sum, &[(0, &count), (1, &d_camera), (2, &buffer)]);
+            Self::dispatch(encoder, camera_sum, &group, groups);
+            CameraPartials { buffer, words }
+        });
+        Ok((grads2d, outputs, partials))
     }
 
     fn backward_inner(

@@ -2,7 +2,10 @@
 // from each Gaussian's gradients of 2D mean, conic, view opacity and view
 // colour to its mean, quaternion, scales, opacity and colour (RGB or SH
 // coefficients, with the view direction's dependence on the mean). One
-// thread per Gaussian.
+// thread per Gaussian. With `d_camera` bound at 6 floats per Gaussian, each
+// also writes its share of the gradient with respect to a motion of the
+// camera (the CPU reference's `camera_contribution`), which camera_sum.wgsl
+// adds up; bound shorter (one float), nothing is written there.
 
 
 @group(0) @binding(0) var<uniform> cam: Camera;
@@ -20,6 +23,7 @@
 @group(0) @binding(10) var<storage, read_write> d_scales: array<f32>;
 @group(0) @binding(11) var<storage, read_write> d_opacities: array<f32>;
 @group(0) @binding(12) var<storage, read_write> d_coeffs: array<f32>;
+@group(0) @binding(13) var<storage, read_write> d_camera: array<f32>;
 
 fn zero_outputs(g: u32, k: u32) {
     for (var a = 0u; a < 3u; a++) {
@@ -35,6 +39,39 @@ fn zero_outputs(g: u32, k: u32) {
     }
 }
 
+// This Gaussian's share of dL/dv and dL/dω for the camera-frame motion
+// u -> u + ω × u + v: the camera-frame mean moves (and, for a translation,
+// the view direction as the world mean would); a rotation turns the
+// covariance, dΣc = ω̂Σc − Σcω̂, so dL = tr(Aω̂) with A = ΣcGᵀ − GᵀΣc.
+fn write_camera_share(
+    g: u32,
+    R: array<array<f32, 3>, 3>,
+    pc: vec3<f32>,
+    d_pc: vec3<f32>,
+    d_view_dir: vec3<f32>,
+    cov_c: array<array<f32, 3>, 3>,
+    d_cov_c: array<array<f32, 3>, 3>,
+    rig_turn: vec3<f32>,
+) {
+    var a: array<array<f32, 3>, 3>;
+    for (var r = 0u; r < 3u; r++) {
+        for (var c = 0u; c < 3u; c++) {
+            var acc = 0.0;
+            for (var u = 0u; u < 3u; u++) {
+                acc += cov_c[r][u] * d_cov_c[c][u] - d_cov_c[u][r] * cov_c[u][c];
+            }
+            a[r][c] = acc;
+        }
+    }
+    let turn = cross(pc, d_pc)
+        + vec3<f32>(a[1][2] - a[2][1], a[2][0] - a[0][2], a[0][1] - a[1][0])
+        + rig_turn;
+    for (var r = 0u; r < 3u; r++) {
+        d_camera[6u * g + r] = d_pc[r] + R[r][0] * d_view_dir.x + R[r][1] * d_view_dir.y + R[r][2] * d_view_dir.z;
+        d_camera[6u * g + 3u + r] = turn[r];
+    }
+}
+
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let g = flat_index(gid, groups);
@@ -45,6 +82,12 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     let k = cam.counts.y;
     let stride = cam.counts2.y;
     zero_outputs(g, stride);
+    let camera_wanted = arrayLength(&d_camera) >= 6u * n;
+    if (camera_wanted) {
+        for (var a = 0u; a < 6u; a++) {
+            d_camera[6u * g + a] = 0.0;
+        }
+    }
     let b9 = GRADS2D_FLOATS * g;
     let visible = projected[12u * g + 10u] > 0.5;
     grads2d[b9 + 9u] = select(0.0, 1.0, visible);
@@ -102,6 +145,8 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     let rig = cam.footprint.z > 0.5;
     var rig_axis = 0u;
     var d_rig = vec3<f32>(0.0);
+    // A fixed-rig direction turns with the camera: dL/dω = d × dL/dd.
+    var rig_turn = vec3<f32>(0.0);
     if (cam.counts.z == 1u) {
         d_coeffs[3u * g] = d_cv.x;
         d_coeffs[3u * g + 1u] = d_cv.y;
@@ -168,6 +213,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
             d_dir += db[i] * dot(c, d_raw);
         }
         if (rig) {
+            rig_turn = cross(dir, d_dir);
             for (var c = 0u; c < 3u; c++) {
                 d_rig[c] = rig_sign * (R[0][c] * d_dir.x + R[1][c] * d_dir.y + R[2][c] * d_dir.z);
             }
@@ -305,6 +351,10 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     } else {
         d_pc.y -= d_j[1][2] * fy / z2;
         d_pc.z += d_j[1][2] * 2.0 * fy * ty / z3;
+    }
+    if (camera_wanted) {
+        // Here d_mean holds only the colour's (world-frame) pull on the mean.
+        write_camera_share(g, R, pc, d_pc, d_mean, cov_c, d_cov_c, rig_turn);
     }
     // Camera to world: the mean through Rᵀ, the covariance as Rᵀ dΣc R.
     for (var a = 0u; a < 3u; a++) {

@@ -253,6 +253,9 @@ fn target_bytes(pixels: usize) -> u64 {
 pub struct StepReport {
     pub loss: f32,
     pub psnr: f64,
+    /// With [`StepRates::camera_gradient`]: the loss's gradient with respect
+    /// to a motion of the view's camera.
+    pub camera: Option<crate::backward::CameraGradient>,
 }
 
 /// The trainer's state as the CPU holds it.
@@ -311,6 +314,8 @@ pub struct StepRates {
     /// Densification statistics from the per-pixel absolute 2D mean
     /// gradients (AbsGS) instead of their sum.
     pub absolute_gradients: bool,
+    /// Also the gradient with respect to the camera (pose refinement).
+    pub camera_gradient: bool,
 }
 
 /// What MCMC adds to one step on the device, as the CPU trainer computes it.
@@ -835,14 +840,27 @@ impl GpuRenderer {
             ],
         );
         Self::dispatch(&mut encoder, &kernels.gradient, &group, pixel_groups);
-        let (grads2d, outputs) =
-            self.record_backward_from(&mut encoder, frame, d_image, rates.absolute_gradients)?;
+        let (grads2d, outputs, partials) = self.record_backward_from(
+            &mut encoder,
+            frame,
+            d_image,
+            rates.absolute_gradients,
+            rates.camera_gradient,
+        )?;
         self.record_step(&mut encoder, state, frame, &grads2d, &outputs, rates, t)?;
-        let bytes = self.submit_and_read(encoder, sums, 20)?;
+        // The loss sums (5 words), then the camera gradient's partial sums.
+        let camera_words = partials.as_ref().map_or(0, |p| p.words);
+        let back = self.zeroed("step read-back", 5 + camera_words);
+        encoder.copy_buffer_to_buffer(sums, 0, &back, 0, 20);
+        if let Some(p) = &partials {
+            encoder.copy_buffer_to_buffer(&p.buffer, 0, &back, 20, 4 * p.words);
+        }
+        let bytes = self.submit_and_read(encoder, &back, 4 * (5 + camera_words))?;
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(gpu_error("the training step failed", e));
         }
-        let s: Vec<f32> = bytes.iter().map(|&w| f32::from_bits(w)).collect();
+        let camera = partials.map(|_| super::camera_gradient_of(&bytes[5..]));
+        let s: Vec<f32> = bytes[..5].iter().map(|&w| f32::from_bits(w)).collect();
         let lam = target.lambda_ssim;
         let loss = (1.0 - lam) * s[0] / (3.0 * weight_sum)
             + lam * (1.0 - s[2])
@@ -854,6 +872,6 @@ impl GpuRenderer {
         } else {
             0.0
         };
-        Ok(StepReport { loss, psnr })
+        Ok(StepReport { loss, psnr, camera })
     }
 }
