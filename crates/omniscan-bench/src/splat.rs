@@ -205,7 +205,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             backward(g, camera, &settings, &p, &l.d_rgb, &l.d_alpha);
             Ok(())
         })?;
-        let (gpu_forward, gpu_train_step) = match &gpu {
+        let (gpu_forward, gpu_train_step, gpu_pose_step) = match &gpu {
             Some(Renderer::Gpu(device)) => {
                 let forward = time(args.repeats, || {
                     device.render(g, camera, &settings)?;
@@ -233,15 +233,25 @@ pub fn bench(args: BenchArgs) -> Result<()> {
                     lambda_opacity: config.lambda_opacity,
                 };
                 let mut t = 0;
-                let step = time(args.repeats, || {
-                    t += 1;
-                    let frame = device.forward_state(&state, camera, &settings, 3, false)?;
-                    device.train_step(&state, &frame, &target, &rates, t)?;
-                    Ok(())
-                })?;
-                (Some(forward), Some(step))
+                let mut step_with = |rates: &omniscan_splat::gpu::training::StepRates| {
+                    time(args.repeats, || {
+                        t += 1;
+                        let frame = device.forward_state(&state, camera, &settings, 3, false)?;
+                        device.train_step(&state, &frame, &target, rates, t)?;
+                        Ok(())
+                    })
+                };
+                let step = step_with(&rates)?;
+                // With pose refinement: the camera gradient's shares, their
+                // sum and its read-back.
+                let pose_rates = omniscan_splat::gpu::training::StepRates {
+                    camera_gradient: true,
+                    ..rates
+                };
+                let pose_step = step_with(&pose_rates)?;
+                (Some(forward), Some(step), Some(pose_step))
             }
-            _ => (None, None),
+            _ => (None, None, None),
         };
         let row = json!({
             "scene": name, "gaussians": g.means.len(), "width": camera.width, "height": camera.height,
@@ -252,6 +262,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             "gpu_forward_speedup": gpu_forward.map(|t| cpu_forward / t),
             "gpu_train_step_s": gpu_train_step,
             "gpu_train_step_speedup": gpu_train_step.map(|t| cpu_train_step / t),
+            "gpu_train_step_with_camera_gradient_s": gpu_pose_step,
         });
         if !args.json {
             println!(
