@@ -931,6 +931,21 @@ impl GpuRenderer {
         d_rgb: &[[f32; 3]],
         d_alpha: &[f32],
     ) -> Result<(wgpu::CommandEncoder, wgpu::Buffer, [wgpu::Buffer; 5]), SplatError> {
+        let d_image = self.image_gradients(frame, d_rgb, d_alpha)?;
+        let mut encoder = self.device.create_command_encoder(&Default::default());
+        let (grads2d, outputs, _) =
+            self.record_backward_from(&mut encoder, frame, &d_image, true, false)?;
+        Ok((encoder, grads2d, outputs))
+    }
+
+    /// dL/d(rgb) and dL/d(alpha) per pixel of `frame`'s render, on the
+    /// device as the backward kernels read them (4 floats a pixel).
+    fn image_gradients(
+        &self,
+        frame: &GpuFrame,
+        d_rgb: &[[f32; 3]],
+        d_alpha: &[f32],
+    ) -> Result<wgpu::Buffer, SplatError> {
         let pixels = (frame.render.width * frame.render.height) as usize;
         if d_rgb.len() != pixels || d_alpha.len() != pixels {
             return Err(SplatError::Invalid(format!(
@@ -944,11 +959,7 @@ impl GpuRenderer {
             .zip(d_alpha)
             .flat_map(|(c, a)| [c[0], c[1], c[2], *a])
             .collect();
-        let d_image = self.storage("image gradients", &d_image);
-        let mut encoder = self.device.create_command_encoder(&Default::default());
-        let (grads2d, outputs, _) =
-            self.record_backward_from(&mut encoder, frame, &d_image, true, false)?;
-        Ok((encoder, grads2d, outputs))
+        Ok(self.storage("image gradients", &d_image))
     }
 
     /// The gradient of the loss with respect to a motion of `frame`'s
@@ -961,16 +972,15 @@ impl GpuRenderer {
         d_alpha: &[f32],
     ) -> Result<crate::backward::CameraGradient, SplatError> {
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let d_image: Vec<f32> = d_rgb
-            .iter()
-            .zip(d_alpha)
-            .flat_map(|(c, a)| [c[0], c[1], c[2], *a])
-            .collect();
-        let d_image = self.storage("image gradients", &d_image);
+        let d_image = self.image_gradients(frame, d_rgb, d_alpha)?;
         let mut encoder = self.device.create_command_encoder(&Default::default());
         let (_, _, partials) =
             self.record_backward_from(&mut encoder, frame, &d_image, false, true)?;
-        let partials = partials.expect("asked for");
+        let Some(partials) = partials else {
+            return Err(SplatError::Invalid(
+                "GPU backend: the backward pass recorded no camera gradient".into(),
+            ));
+        };
         let words = self.submit_and_read(encoder, &partials.buffer, 4 * partials.words)?;
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(gpu_error("the camera gradient failed", e));
