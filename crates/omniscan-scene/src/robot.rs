@@ -114,8 +114,9 @@ pub struct RobotGripper {
     openings: Vec<(f64, f64)>,
     /// Whether share 0 is the joints' lower limit (else the upper).
     open_at_upper: bool,
-    /// Each mesh's voxels in its link's frame, for collision tests.
-    volumes: Vec<LinkVolume>,
+    /// Each mesh's voxels in its link's frame, for collision tests: made
+    /// when the grasp planner first asks (masking never does).
+    volumes: std::sync::OnceLock<Vec<LinkVolume>>,
 }
 
 /// A link mesh's voxels in the link's own frame, and whether the link moves
@@ -237,11 +238,10 @@ impl RobotGripper {
             closures: tree.closures,
             openings: Vec::new(),
             open_at_upper: true,
-            volumes: Vec::new(),
+            volumes: std::sync::OnceLock::new(),
         };
         gripper.tcp_in_root = gripper.tcp(spec).map_err(&fail)?;
         gripper.measure_openings().map_err(&fail)?;
-        gripper.volumes = gripper.link_volumes();
         Ok(gripper)
     }
 
@@ -526,6 +526,7 @@ impl RobotGripper {
     pub fn collision_parts(&self, opening_m: f64) -> Vec<CollisionPart<'_>> {
         let poses = self.link_poses(self.joint_share(opening_m));
         self.volumes
+            .get_or_init(|| self.link_volumes())
             .iter()
             .map(|v| CollisionPart {
                 tcp_to_part: poses[v.link.as_str()],
