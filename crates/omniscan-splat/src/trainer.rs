@@ -10,7 +10,8 @@
 //! camera's gradient. On the CPU renderer everything runs on the CPU; on a GPU the
 //! parameters, moments and statistics stay on the device, where rendering,
 //! gradients and Adam run, and come back only to refine, checkpoint and
-//! finish.
+//! finish; with pose refinement the camera gradient comes back with each
+//! step's loss (as partial sums) and the corrections step on the host.
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
