@@ -23,7 +23,7 @@ use crate::settings::default_from_flags;
 #[derive(clap::Args, Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct PoseSettings {
-    /// Learn a small correction of each view's recorded pose with the splats (and one camera-side correction per arm: its hand-eye offset), pulled toward the recorded pose; held-out views fit their own against the trained model before they are scored (test-time pose fitting), and the report gives the corrections. For real robots' calibration error. CPU backend only. docs/train.md
+    /// Learn a small correction of each view's recorded pose with the splats (and one camera-side correction per arm: its hand-eye offset), pulled toward the recorded pose; held-out views fit their own against the trained model before they are scored (test-time pose fitting), and the report gives the corrections. For real robots' calibration error. docs/train.md
     #[arg(long)]
     pub refine_poses: bool,
     /// Adam's rate for the corrections' rotations, radians per step (decayed to 1% over the run).
