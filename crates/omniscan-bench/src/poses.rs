@@ -48,6 +48,11 @@ pub struct BenchArgs {
     pub downscale: u32,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Where the three trainings run: cpu, gpu (any device) or auto; off the
+    /// CPU the models and reports get the backend's name as a suffix
+    /// (`refined-gpu.json`), so runs on both can share --out.
+    #[arg(long, default_value = "cpu")]
+    pub backend: Backend,
     #[command(flatten)]
     pub poses: PoseSettings,
     #[arg(long)]
@@ -75,6 +80,11 @@ fn simulated(args: &BenchArgs, dir: &Path, noisy: bool) -> Result<()> {
 
 /// A model of `capture`'s left arm (reused with its report when there).
 fn trained(args: &BenchArgs, capture: &Path, name: &str, refine: bool) -> Result<TrainReport> {
+    let name = match args.backend {
+        Backend::Cpu => name.to_string(),
+        Backend::Gpu => format!("{name}-gpu"),
+        Backend::Auto => format!("{name}-auto"),
+    };
     let out = args.out.join(format!("{name}.ply"));
     let report_path = args.out.join(format!("{name}.json"));
     if out.exists() && report_path.exists() {
@@ -89,7 +99,7 @@ fn trained(args: &BenchArgs, capture: &Path, name: &str, refine: bool) -> Result
         downscale: args.downscale,
         seed: args.seed,
         use_ground_truth_masks: true,
-        backend: Backend::Cpu,
+        backend: args.backend,
         poses: PoseSettings {
             refine_poses: refine,
             ..args.poses.clone()
