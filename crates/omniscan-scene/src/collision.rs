@@ -4,7 +4,8 @@
 //! The YuMi's volume is the boxes of [`crate::gripper::gripper_boxes`].
 //! Another robot's gripper comes as link meshes of any shape (an L-shaped
 //! finger with its mounting block, a four-bar linkage), so each link is
-//! voxelised once, at load, in its own frame ([`Voxels`]). A bounding box per
+//! voxelised once, when the planner first asks, in its own frame
+//! ([`Voxels`]). A bounding box per
 //! link was tried first: an L-shaped finger's box covers the space between
 //! the pads, and no grasp fitted the YuMi's own URDF or the Robotiq 2F-85.
 //!
@@ -41,7 +42,8 @@ pub struct Voxels {
 
 impl Voxels {
     /// Voxelises `mesh` with voxels of [`VOXEL_M`] (larger for a link over
-    /// 256 mm). An empty mesh gives no voxels.
+    /// 254 mm, whose grid would pass 256 a side). An empty mesh gives no
+    /// voxels.
     pub fn of_mesh(mesh: &Mesh) -> Voxels {
         let (mut lo, mut hi) = (
             Point3::from([f64::INFINITY; 3]),
