@@ -166,25 +166,7 @@ impl<'a> Reader<'a> {
                 &unit(Vector3::new(a[0], a[1], a[2]), "axisangle")?,
                 self.angle(a[3]),
             )),
-            [("euler", e)] if e.len() == 3 => {
-                let mut q = UnitQuaternion::identity();
-                for (axis, angle) in self.eulerseq.chars().zip(e) {
-                    let turn = UnitQuaternion::from_axis_angle(
-                        &match axis.to_ascii_lowercase() {
-                            'x' => Vector3::x_axis(),
-                            'y' => Vector3::y_axis(),
-                            _ => Vector3::z_axis(),
-                        },
-                        self.angle(*angle),
-                    );
-                    q = if axis.is_ascii_lowercase() {
-                        q * turn
-                    } else {
-                        turn * q
-                    };
-                }
-                Ok(q)
-            }
+            [("euler", e)] if e.len() == 3 => Ok(self.euler(e)),
             [("xyaxes", v)] if v.len() == 6 => {
                 let x = unit(Vector3::new(v[0], v[1], v[2]), "xyaxes' x")?;
                 let y = Vector3::new(v[3], v[4], v[5]);
@@ -228,6 +210,27 @@ impl<'a> Reader<'a> {
                     .join(" and ")
             )),
         }
+    }
+
+    /// Euler angles in `<compiler eulerseq>`'s order: a lower-case axis
+    /// turns about the frame as turned so far (post-multiplied), an upper-case
+    /// one about the fixed frame (pre-multiplied).
+    fn euler(&self, angles: &[f64]) -> UnitQuaternion<f64> {
+        let mut q = UnitQuaternion::identity();
+        for (axis, angle) in self.eulerseq.chars().zip(angles) {
+            let about = match axis.to_ascii_lowercase() {
+                'x' => Vector3::x_axis(),
+                'y' => Vector3::y_axis(),
+                _ => Vector3::z_axis(),
+            };
+            let turn = UnitQuaternion::from_axis_angle(&about, self.angle(*angle));
+            q = if axis.is_ascii_lowercase() {
+                q * turn
+            } else {
+                turn * q
+            };
+        }
+        q
     }
 
     /// A visible geom's mesh in its body's frame; `None` for a hidden one.
