@@ -422,10 +422,11 @@ pub fn plan_right_grasp(
     };
     let found = candidates(mesh, &settings);
     let separation = |g: &Grasp| -> f64 {
+        let to_object = g.object_to_gripper().inverse();
         let pads: Vec<Point3<f64>> = gripper
             .pad_points(g.width_m)
             .iter()
-            .map(|p| g.object_to_gripper().inverse() * p)
+            .map(|p| to_object * p)
             .collect();
         pads.iter()
             .flat_map(|a| left_pads.iter().map(move |b| (a - b).norm()))
